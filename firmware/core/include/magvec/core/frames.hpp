@@ -1,0 +1,124 @@
+// Frames and attitude conventions (DESIGN.md "Conventions").
+// Navigation frame n = ENU. Rotation matrices are passive (frame rotations). R_bn maps n-frame
+// components to INS body components: h_b = R_bn h_n. Li et al. 2023 eq. (2):
+// R_bn = Ry(gamma) Rx(beta) Rz(alpha), body axes Right-Forward-Up, alpha right-handed about Up.
+// Euler angles exist only at the edges (files, drivers, paper reproduction).
+#pragma once
+
+#include <cmath>
+
+#include "magvec/core/types.hpp"
+
+namespace magvec::core {
+
+// Passive elementary rotations.
+template <typename Scalar>
+Mat3<Scalar> rot_x(Scalar a) noexcept {
+  const Scalar c = std::cos(a), s = std::sin(a);
+  Mat3<Scalar> r;
+  r << 1, 0, 0, 0, c, s, 0, -s, c;
+  return r;
+}
+template <typename Scalar>
+Mat3<Scalar> rot_y(Scalar a) noexcept {
+  const Scalar c = std::cos(a), s = std::sin(a);
+  Mat3<Scalar> r;
+  r << c, 0, -s, 0, 1, 0, s, 0, c;
+  return r;
+}
+template <typename Scalar>
+Mat3<Scalar> rot_z(Scalar a) noexcept {
+  const Scalar c = std::cos(a), s = std::sin(a);
+  Mat3<Scalar> r;
+  r << c, s, 0, -s, c, 0, 0, 0, 1;
+  return r;
+}
+
+// Li's Euler angles in radians: alpha heading (about Up, right-handed), beta pitch, gamma roll.
+template <typename Scalar>
+struct LiEuler {
+  Scalar alpha{0};
+  Scalar beta{0};
+  Scalar gamma{0};
+};
+
+// Aerospace angles in radians: yaw clockwise from North, pitch nose up, roll right wing down;
+// navigation NED, body Forward-Right-Down.
+template <typename Scalar>
+struct YawPitchRoll {
+  Scalar yaw{0};
+  Scalar pitch{0};
+  Scalar roll{0};
+};
+
+template <typename Scalar>
+Mat3<Scalar> r_bn_from_li(const LiEuler<Scalar>& e) noexcept {
+  return rot_y(e.gamma) * rot_x(e.beta) * rot_z(e.alpha);
+}
+
+// Inverse of r_bn_from_li for |beta| < 90 deg. From the product
+// R = [[cg ca - sg sb sa, cg sa + sg sb ca, -sg cb], [-cb sa, cb ca, sb], [..., ..., cg cb]].
+template <typename Scalar>
+LiEuler<Scalar> li_from_r_bn(const Mat3<Scalar>& r) noexcept {
+  using std::asin;
+  using std::atan2;
+  const Scalar sb = r(1, 2) > Scalar(1) ? Scalar(1) : (r(1, 2) < Scalar(-1) ? Scalar(-1) : r(1, 2));
+  return {atan2(-r(1, 0), r(1, 1)), asin(sb), atan2(-r(0, 2), r(2, 2))};
+}
+
+// ENU <-> NED and RFU <-> FRD are the same signed permutation: swap the first two axes, negate the third.
+template <typename Scalar>
+Mat3<Scalar> enu_ned_swap() noexcept {
+  Mat3<Scalar> p;
+  p << 0, 1, 0, 1, 0, 0, 0, 0, -1;
+  return p;
+}
+
+// Aerospace (NED, FRD) attitude to R_bn (ENU -> RFU). C_frd_ned = Rx(roll) Ry(pitch) Rz(yaw), and
+// P C P = Ry(roll) Rx(pitch) Rz(-yaw): Li's (alpha, beta, gamma) = (-yaw, pitch, roll) exactly.
+template <typename Scalar>
+Mat3<Scalar> r_bn_from_ypr(const YawPitchRoll<Scalar>& a) noexcept {
+  return r_bn_from_li(LiEuler<Scalar>{-a.yaw, a.pitch, a.roll});
+}
+template <typename Scalar>
+YawPitchRoll<Scalar> ypr_from_r_bn(const Mat3<Scalar>& r) noexcept {
+  const LiEuler<Scalar> e = li_from_r_bn(r);
+  return {-e.alpha, e.beta, e.gamma};
+}
+// The aerospace direction cosine matrix C_frd_ned itself (for drivers that deal in NED/FRD).
+template <typename Scalar>
+Mat3<Scalar> c_frd_ned_from_ypr(const YawPitchRoll<Scalar>& a) noexcept {
+  return rot_x(a.roll) * rot_y(a.pitch) * rot_z(a.yaw);
+}
+
+// A unit quaternion q that rotates body vectors into ENU (h_n = q h_b q^-1) is R_bn^T.
+template <typename Scalar>
+Mat3<Scalar> r_bn_from_quat(const Quat<Scalar>& q_nb) noexcept {
+  return q_nb.normalized().toRotationMatrix().transpose();
+}
+// Inverse of r_bn_from_quat, with the sign fixed so that w >= 0.
+template <typename Scalar>
+Quat<Scalar> quat_from_r_bn(const Mat3<Scalar>& r_bn) noexcept {
+  Quat<Scalar> q(Mat3<Scalar>(r_bn.transpose()));
+  q.normalize();
+  if (q.w() < Scalar(0)) q.coeffs() = -q.coeffs();
+  return q;
+}
+
+// Wraps an angle in radians to (-pi, pi].
+template <typename Scalar>
+Scalar wrap_pi(Scalar a) noexcept {
+  const Scalar two_pi = Scalar(2) * kPi<Scalar>;
+  a = std::fmod(a, two_pi);
+  if (a <= -kPi<Scalar>) a += two_pi;
+  if (a > kPi<Scalar>) a -= two_pi;
+  return a;
+}
+
+// Angle of the rotation r_a^T r_b in radians: the distance between two attitudes.
+template <typename Scalar>
+Scalar rotation_angle_between(const Mat3<Scalar>& r_a, const Mat3<Scalar>& r_b) noexcept {
+  return Eigen::AngleAxis<Scalar>(Mat3<Scalar>(r_a.transpose() * r_b)).angle();
+}
+
+}  // namespace magvec::core

@@ -1,0 +1,96 @@
+#include "magvec/core/frames.hpp"
+
+#include <gtest/gtest.h>
+
+#include <random>
+
+namespace magvec::core {
+namespace {
+
+constexpr double kDeg = kPi<double> / 180.0;
+
+TEST(Frames, ElementaryRotationsArePassive) {
+  // A frame rotated by +90 deg about Up sees East along its -y axis: passive (frame) rotation.
+  const Vec3<double> east(1, 0, 0);
+  const Vec3<double> v = rot_z(90 * kDeg) * east;
+  EXPECT_NEAR(v.x(), 0, 1e-15);
+  EXPECT_NEAR(v.y(), -1, 1e-15);
+  EXPECT_NEAR((rot_x(0.3) * rot_x(-0.3) - Mat3<double>::Identity()).norm(), 0, 1e-15);
+  EXPECT_NEAR(rot_y(0.2)(0, 2), -std::sin(0.2), 1e-15);
+}
+
+TEST(Frames, LiEulerRoundTrip) {
+  std::mt19937_64 rng(7);
+  std::uniform_real_distribution<double> heading(-179.9, 179.9), tilt(-89, 89), roll(-179.9, 179.9);
+  for (int i = 0; i < 500; ++i) {
+    const LiEuler<double> e{heading(rng) * kDeg, tilt(rng) * kDeg, roll(rng) * kDeg};
+    const Mat3<double> r = r_bn_from_li(e);
+    EXPECT_NEAR((r * r.transpose() - Mat3<double>::Identity()).norm(), 0, 1e-14);
+    EXPECT_NEAR(r.determinant(), 1, 1e-14);
+    const LiEuler<double> back = li_from_r_bn(r);
+    EXPECT_NEAR(back.alpha, e.alpha, 1e-12);
+    EXPECT_NEAR(back.beta, e.beta, 1e-12);
+    EXPECT_NEAR(back.gamma, e.gamma, 1e-12);
+  }
+}
+
+TEST(Frames, AerospaceAnglesMatchLiConventionThroughNedFrdSwap) {
+  std::mt19937_64 rng(11);
+  std::uniform_real_distribution<double> u(-80, 80);
+  const Mat3<double> p = enu_ned_swap<double>();
+  for (int i = 0; i < 200; ++i) {
+    const YawPitchRoll<double> a{u(rng) * kDeg, u(rng) * kDeg, u(rng) * kDeg};
+    // R_bn (ENU -> RFU) = P_body * C_frd_ned * P_nav with the same signed permutation.
+    const Mat3<double> expected = p * c_frd_ned_from_ypr(a) * p;
+    EXPECT_NEAR((r_bn_from_ypr(a) - expected).norm(), 0, 1e-14);
+    const YawPitchRoll<double> back = ypr_from_r_bn(r_bn_from_ypr(a));
+    EXPECT_NEAR(back.yaw, a.yaw, 1e-12);
+    EXPECT_NEAR(back.pitch, a.pitch, 1e-12);
+    EXPECT_NEAR(back.roll, a.roll, 1e-12);
+  }
+}
+
+TEST(Frames, HeadingClockwiseFromNorthIsNegativeAlpha) {
+  // Vehicle heading East (yaw = +90 deg): its Forward axis (body y in RFU) sees the East component.
+  const Mat3<double> r = r_bn_from_ypr(YawPitchRoll<double>{90 * kDeg, 0, 0});
+  const Vec3<double> h_b = r * Vec3<double>(1, 0, 0);  // unit East field
+  EXPECT_NEAR(h_b.y(), 1, 1e-15);
+  EXPECT_NEAR(h_b.x(), 0, 1e-15);
+  // Nose up 10 deg: Forward axis picks up part of the Up component.
+  const Mat3<double> rp = r_bn_from_ypr(YawPitchRoll<double>{0, 10 * kDeg, 0});
+  EXPECT_NEAR((rp * Vec3<double>(0, 0, 1)).y(), std::sin(10 * kDeg), 1e-15);
+}
+
+TEST(Frames, QuaternionRotatesBodyIntoEnu) {
+  std::mt19937_64 rng(3);
+  std::normal_distribution<double> n(0, 1);
+  for (int i = 0; i < 200; ++i) {
+    Quat<double> q(n(rng), n(rng), n(rng), n(rng));
+    q.normalize();
+    const Mat3<double> r_bn = r_bn_from_quat(q);
+    const Vec3<double> h_b(n(rng), n(rng), n(rng));
+    const Vec3<double> h_n = q * h_b;  // active rotation of a body vector into ENU
+    EXPECT_NEAR((r_bn * h_n - h_b).norm(), 0, 1e-13);
+    const Quat<double> back = quat_from_r_bn(r_bn);
+    EXPECT_GE(back.w(), 0);
+    EXPECT_NEAR(std::abs(back.dot(q)), 1, 1e-13);
+  }
+}
+
+TEST(Frames, WrapPi) {
+  EXPECT_NEAR(wrap_pi(3 * kPi<double>), kPi<double>, 1e-12);
+  EXPECT_NEAR(wrap_pi(-kPi<double>), kPi<double>, 1e-12);
+  EXPECT_NEAR(wrap_pi(0.5), 0.5, 1e-15);
+  EXPECT_NEAR(wrap_pi(-7.0), -7.0 + 2 * kPi<double>, 1e-12);
+}
+
+TEST(Frames, FloatInstantiation) {
+  const Mat3<float> r = r_bn_from_li(LiEuler<float>{0.1f, 0.2f, 0.3f});
+  const LiEuler<float> e = li_from_r_bn(r);
+  EXPECT_NEAR(e.alpha, 0.1f, 1e-6f);
+  EXPECT_NEAR(e.beta, 0.2f, 1e-6f);
+  EXPECT_NEAR(e.gamma, 0.3f, 1e-6f);
+}
+
+}  // namespace
+}  // namespace magvec::core

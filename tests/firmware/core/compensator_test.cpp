@@ -27,7 +27,8 @@ TEST(Compensator, InvertsTheForwardModelExactly) {
   const Vec3<double> h_n(-4053, 25022, 47374);  // ENU, |h| = 53729.2 nT
   const Compensator<double> comp(truth);
   for (int i = 0; i < 1000; ++i) {
-    const Mat3<double> r_bn = r_bn_from_li(LiEuler<double>{u(rng) * kDeg, t(rng) * kDeg, u(rng) * kDeg});
+    const Mat3<double> r_bn =
+        r_bn_from_li(LiEuler<double>{u(rng) * kDeg, t(rng) * kDeg, u(rng) * kDeg});
     const Vec3<double> m = truth.predict_raw(r_bn, h_n);
     Compensated<double> c;
     ASSERT_TRUE(comp.compensate(m, &c));
@@ -68,7 +69,8 @@ TEST(Compensator, PerSamplePathDoesNotAllocate) {
   const test::AllocationScope scope;
   for (int i = 0; i < 100000; ++i) {
     const double a = 0.001 * i;
-    const Mat3<double> r_bn = r_bn_from_li(LiEuler<double>{a, 0.3 * std::sin(a), 0.2 * std::cos(a)});
+    const Mat3<double> r_bn =
+        r_bn_from_li(LiEuler<double>{a, 0.3 * std::sin(a), 0.2 * std::cos(a)});
     const Vec3<double> m = truth.predict_raw(r_bn, h_n);
     Compensated<double> c;
     Compensated<float> cf;

@@ -16,12 +16,14 @@ LiParams<double> random_li(std::mt19937_64& rng) {
   p.ks = {ks(rng), ks(rng), ks(rng)};
   p.o_rad = Vec3<double>(ang(rng), ang(rng), ang(rng)) * kDeg;
   p.kof = {off(rng), off(rng), off(rng)};
-  p.rm_rad = Vec3<double>(mis(rng) * 10, mis(rng), mis(rng)) * kDeg;  // heading misalignment up to 150 deg
+  p.rm_rad =
+      Vec3<double>(mis(rng) * 10, mis(rng), mis(rng)) * kDeg;  // heading misalignment up to 150 deg
   return p;
 }
 
 SineParams<double> random_sine(std::mt19937_64& rng) {
-  std::uniform_real_distribution<double> k(0.8, 1.2), small(-6, 6), az(-179, 179), g(0.3, 8), off(-500, 500);
+  std::uniform_real_distribution<double> k(0.8, 1.2), small(-6, 6), az(-179, 179), g(0.3, 8),
+      off(-500, 500);
   SineParams<double> p;
   p.k = {k(rng), k(rng), k(rng)};
   p.alpha_rad = small(rng) * kDeg;
@@ -32,7 +34,8 @@ SineParams<double> random_sine(std::mt19937_64& rng) {
 }
 
 // Two models are physically the same when they give the same body-frame field for every reading.
-void expect_same_body_field(const SensorModel<double>& a, const SensorModel<double>& b, double tol) {
+void expect_same_body_field(const SensorModel<double>& a, const SensorModel<double>& b,
+                            double tol) {
   const Mat3<double> ma = a.rm_matrix().transpose() * a.w;
   const Mat3<double> mb = b.rm_matrix().transpose() * b.w;
   EXPECT_LT((ma - mb).norm() / ma.norm(), tol);
@@ -68,7 +71,8 @@ TEST(SensorModel, LiDecompositionFollowsErrataNotPrintedShortcut) {
   EXPECT_GT(shortcut_err_y, 1e-3);
   // Eq. (5) rows are unit vectors; Ks Ko in axis order (x, z, y) is lower triangular.
   const Mat3<double> ko = li_ko(p.o_rad);
-  for (int i = 0; i < 3; ++i) EXPECT_NEAR(ko.row(i).norm(), 1, 1e-15);
+  for (int i = 0; i < 3; ++i)
+    EXPECT_NEAR(ko.row(i).norm(), 1, 1e-15);
   EXPECT_EQ(ko(0, 1), 0);
   EXPECT_EQ(ko(0, 2), 0);
   EXPECT_EQ(ko(2, 1), 0);
@@ -82,7 +86,8 @@ TEST(SensorModel, GeRoundTripsAndIsPhysicallyEquivalent) {
   for (int i = 0; i < kCases; ++i) {
     GeParams<double> p;
     Mat3<double> c;
-    c << diag(rng), off(rng), off(rng), off(rng), diag(rng), off(rng), off(rng), off(rng), diag(rng);
+    c << diag(rng), off(rng), off(rng), off(rng), diag(rng), off(rng), off(rng), off(rng),
+        diag(rng);
     p.c_inv = c.inverse();
     p.b = {b(rng), b(rng), b(rng)};
     const GeParams<double> back = to_ge(from_ge(p));

@@ -66,7 +66,8 @@ LiEuler<Scalar> li_from_r_bn(const Mat3<Scalar>& r) noexcept {
   return {atan2(-r(1, 0), r(1, 1)), asin(sb), atan2(-r(0, 2), r(2, 2))};
 }
 
-// ENU <-> NED and RFU <-> FRD are the same signed permutation: swap the first two axes, negate the third.
+// ENU <-> NED and RFU <-> FRD are the same signed permutation: swap the first two axes, negate the
+// third.
 template <typename Scalar>
 Mat3<Scalar> enu_ned_swap() noexcept {
   Mat3<Scalar> p;

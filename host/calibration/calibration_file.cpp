@@ -1,0 +1,226 @@
+#include "calibration/calibration_file.hpp"
+
+#include <nlohmann/json.hpp>
+
+#include <cmath>
+#include <ctime>
+#include <fstream>
+#include <sstream>
+
+#include "io/atomic_file.hpp"
+
+namespace magvec::host {
+namespace {
+
+using nlohmann::json;
+constexpr const char* kSchema = "magvec-calibration/1";
+constexpr double kRad = 3.14159265358979323846 / 180.0;
+
+template <typename Derived>
+json to_array(const Eigen::MatrixBase<Derived>& m, double scale = 1.0) {
+  json a = json::array();
+  for (Eigen::Index r = 0; r < m.rows(); ++r) {
+    for (Eigen::Index c = 0; c < m.cols(); ++c) a.push_back(m(r, c) * scale);
+  }
+  return a;
+}
+
+[[noreturn]] void fail(const std::string& source, const std::string& what) {
+  throw CalibrationFileError(source + ": " + what);
+}
+
+const json& field(const json& j, const char* key, const std::string& source, const std::string& path) {
+  if (!j.is_object() || !j.contains(key)) fail(source, "missing field '" + path + key + "'");
+  return j.at(key);
+}
+
+std::vector<double> numbers(const json& j, std::size_t n, const std::string& source, const std::string& name) {
+  if (!j.is_array() || j.size() != n) {
+    fail(source, "field '" + name + "' must be an array of " + std::to_string(n) + " numbers");
+  }
+  std::vector<double> out;
+  for (const json& v : j) {
+    if (!v.is_number()) fail(source, "field '" + name + "' holds a non-number");
+    const double d = v.get<double>();
+    if (!std::isfinite(d)) fail(source, "field '" + name + "' holds a non-finite number");
+    out.push_back(d);
+  }
+  return out;
+}
+
+double number(const json& j, const std::string& source, const std::string& name) {
+  if (!j.is_number() || !std::isfinite(j.get<double>())) fail(source, "field '" + name + "' must be a finite number");
+  return j.get<double>();
+}
+
+}  // namespace
+
+std::string to_json_text(const CalibrationFile& cal) {
+  json j;
+  j["schema"] = kSchema;
+  j["W"] = to_array(cal.model.w);
+  j["o_nT"] = to_array(cal.model.o);
+  const core::Quat<double> q = cal.model.rm.normalized();
+  j["Rm_quat"] = {q.w(), q.x(), q.y(), q.z()};
+
+  core::LiParams<double> li;
+  if (core::to_li(cal.model, &li) == core::ConversionStatus::kOk) {
+    j["li"] = {{"ks", to_array(li.ks)},
+               {"O_deg", to_array(li.o_rad, 1.0 / kRad)},
+               {"Kof_nT", to_array(li.kof)},
+               {"Rm_deg", to_array(li.rm_rad, 1.0 / kRad)}};
+  }
+  const core::GeParams<double> ge = core::to_ge(cal.model);
+  j["ge"] = {{"Cinv", to_array(ge.c_inv)}, {"b_nT", to_array(ge.b)}};
+  if (cal.sine) {
+    const core::SineParams<double>& s = cal.sine->params;
+    j["sine"] = {{"k", to_array(s.k)},
+                 {"alpha_deg", s.alpha_rad / kRad},
+                 {"beta_deg", s.beta_rad / kRad},
+                 {"gamma_deg", s.gamma_rad / kRad},
+                 {"B0_nT", to_array(s.b0)},
+                 {"inclination_deg", cal.sine->inclination_rad / kRad}};
+  }
+  if (cal.h_n_nT) j["h_n_nT"] = to_array(*cal.h_n_nT);
+  json sigma = json::object();
+  for (const auto& [name, values] : cal.sigma) sigma[name] = values;
+  j["sigma"] = sigma;
+  json extra = json::object();
+  for (const auto& [name, value] : cal.quality.extra) extra[name] = value;
+  j["quality"] = {{"verdict", cal.quality.verdict},
+                  {"reason", cal.quality.reason},
+                  {"coverage", cal.quality.coverage},
+                  {"condition", cal.quality.condition},
+                  {"residual_rms_nT", {{"before", cal.quality.residual_rms_before_nT},
+                                       {"after", cal.quality.residual_rms_after_nT}}},
+                  {"counts", {{"samples", cal.counts.samples},
+                              {"used", cal.counts.used},
+                              {"skipped_nonfinite", cal.counts.skipped_nonfinite},
+                              {"rejected_outliers", cal.counts.rejected_outliers}}},
+                  {"extra", extra}};
+  j["provenance"] = {{"input", cal.provenance.input},
+                     {"method", cal.provenance.method},
+                     {"samples_used", cal.counts.used},
+                     {"samples_rejected", cal.counts.rejected_outliers + cal.counts.skipped_nonfinite},
+                     {"magvec_version", cal.provenance.magvec_version},
+                     {"created_utc", cal.provenance.created_utc}};
+  return j.dump(2) + "\n";
+}
+
+CalibrationFile from_json_text(const std::string& text, const std::string& source) {
+  json j;
+  try {
+    j = json::parse(text);
+  } catch (const json::parse_error& e) {
+    fail(source, std::string("not valid JSON: ") + e.what());
+  }
+  if (!j.is_object()) fail(source, "top level must be a JSON object");
+  const json& schema = field(j, "schema", source, "");
+  if (!schema.is_string() || schema.get<std::string>() != kSchema) {
+    fail(source, std::string("unsupported schema (expected '") + kSchema + "')");
+  }
+  CalibrationFile cal;
+  const std::vector<double> w = numbers(field(j, "W", source, ""), 9, source, "W");
+  const std::vector<double> o = numbers(field(j, "o_nT", source, ""), 3, source, "o_nT");
+  const std::vector<double> q = numbers(field(j, "Rm_quat", source, ""), 4, source, "Rm_quat");
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) cal.model.w(r, c) = w[static_cast<std::size_t>(3 * r + c)];
+  }
+  cal.model.o = core::Vec3<double>(o[0], o[1], o[2]);
+  const double qn = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  if (std::abs(qn - 1.0) > 1e-6) fail(source, "field 'Rm_quat' is not a unit quaternion");
+  cal.model.rm = core::Quat<double>(q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn);
+  const double det = cal.model.w.determinant();
+  if (!(std::abs(det) > 1e-12)) fail(source, "field 'W' is singular");
+
+  if (j.contains("h_n_nT")) {
+    const std::vector<double> h = numbers(j["h_n_nT"], 3, source, "h_n_nT");
+    cal.h_n_nT = core::Vec3<double>(h[0], h[1], h[2]);
+  }
+  if (j.contains("sine")) {
+    const json& s = j["sine"];
+    SineResult r;
+    const std::vector<double> k = numbers(field(s, "k", source, "sine."), 3, source, "sine.k");
+    const std::vector<double> b0 = numbers(field(s, "B0_nT", source, "sine."), 3, source, "sine.B0_nT");
+    r.params.k = core::Vec3<double>(k[0], k[1], k[2]);
+    r.params.b0 = core::Vec3<double>(b0[0], b0[1], b0[2]);
+    r.params.alpha_rad = number(field(s, "alpha_deg", source, "sine."), source, "sine.alpha_deg") * kRad;
+    r.params.beta_rad = number(field(s, "beta_deg", source, "sine."), source, "sine.beta_deg") * kRad;
+    r.params.gamma_rad = number(field(s, "gamma_deg", source, "sine."), source, "sine.gamma_deg") * kRad;
+    r.inclination_rad =
+        number(field(s, "inclination_deg", source, "sine."), source, "sine.inclination_deg") * kRad;
+    cal.sine = r;
+  }
+  if (j.contains("sigma")) {
+    const json& s = j["sigma"];
+    if (!s.is_object()) fail(source, "field 'sigma' must be an object");
+    for (const auto& [name, values] : s.items()) {
+      if (!values.is_array()) fail(source, "field 'sigma." + name + "' must be an array");
+      cal.sigma[name] = numbers(values, values.size(), source, "sigma." + name);
+    }
+  }
+  if (j.contains("quality")) {
+    const json& qj = j["quality"];
+    cal.quality.verdict = qj.value("verdict", std::string("ok"));
+    cal.quality.reason = qj.value("reason", std::string());
+    cal.quality.coverage = qj.value("coverage", 0.0);
+    cal.quality.condition = qj.value("condition", 0.0);
+    if (qj.contains("residual_rms_nT")) {
+      cal.quality.residual_rms_before_nT = qj["residual_rms_nT"].value("before", 0.0);
+      cal.quality.residual_rms_after_nT = qj["residual_rms_nT"].value("after", 0.0);
+    }
+    if (qj.contains("counts")) {
+      const json& c = qj["counts"];
+      cal.counts.samples = c.value("samples", std::uint64_t{0});
+      cal.counts.used = c.value("used", std::uint64_t{0});
+      cal.counts.skipped_nonfinite = c.value("skipped_nonfinite", std::uint64_t{0});
+      cal.counts.rejected_outliers = c.value("rejected_outliers", std::uint64_t{0});
+    }
+    if (qj.contains("extra") && qj["extra"].is_object()) {
+      for (const auto& [name, value] : qj["extra"].items()) {
+        if (value.is_number()) cal.quality.extra[name] = value.get<double>();
+      }
+    }
+  }
+  if (j.contains("provenance")) {
+    const json& p = j["provenance"];
+    cal.provenance.input = p.value("input", std::string());
+    cal.provenance.method = p.value("method", std::string());
+    cal.provenance.magvec_version = p.value("magvec_version", std::string());
+    cal.provenance.created_utc = p.value("created_utc", std::string());
+  }
+  // The paper forms are derived data: if present they must agree with the canonical model.
+  if (j.contains("ge")) {
+    const std::vector<double> cinv = numbers(field(j["ge"], "Cinv", source, "ge."), 9, source, "ge.Cinv");
+    const core::GeParams<double> ge = core::to_ge(cal.model);
+    for (int i = 0; i < 9; ++i) {
+      if (std::abs(cinv[static_cast<std::size_t>(i)] - ge.c_inv(i / 3, i % 3)) > 1e-9 * (1 + ge.c_inv.norm())) {
+        fail(source, "field 'ge.Cinv' disagrees with W and Rm_quat (edited by hand?)");
+      }
+    }
+  }
+  return cal;
+}
+
+void write_calibration_file(const std::string& path, const CalibrationFile& cal) {
+  io::write_file_atomically(path, to_json_text(cal));
+}
+
+CalibrationFile read_calibration_file(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw CalibrationFileError(path + ": cannot open calibration file");
+  std::ostringstream ss;
+  ss << in.rdbuf();
+  return from_json_text(ss.str(), path);
+}
+
+std::string utc_now_iso8601() {
+  const std::time_t now = std::time(nullptr);
+  std::tm tm{};
+  gmtime_r(&now, &tm);
+  char buf[32];
+  std::strftime(buf, sizeof buf, "%Y-%m-%dT%H:%M:%SZ", &tm);
+  return buf;
+}
+
+}  // namespace magvec::host

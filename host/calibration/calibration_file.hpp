@@ -1,0 +1,74 @@
+// cal.json: the calibration result file (schema "magvec-calibration/1", documented in README.md).
+// The canonical W / o_nT / Rm_quat are authoritative; the paper forms (li, ge, sine) are derived
+// from them when written and checked for consistency when read.
+#pragma once
+
+#include <cstdint>
+#include <map>
+#include <optional>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "magvec/core/sensor_model.hpp"
+
+namespace magvec::host {
+
+class CalibrationFileError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+struct SineResult {
+  core::SineParams<double> params;
+  double inclination_rad{0};
+};
+
+struct CalibrationQuality {
+  std::string verdict = "ok";  // ok, insufficient_coverage, ill_conditioned, ...
+  std::string reason;          // human-readable explanation of the verdict
+  double coverage{0};          // fraction of the sphere of directions covered [0, 1]
+  double condition{0};         // condition number of the fit's normal matrix
+  double residual_rms_before_nT{0};
+  double residual_rms_after_nT{0};
+  std::map<std::string, double> extra;  // further figures (e.g. component spread)
+};
+
+struct CalibrationCounts {
+  std::uint64_t samples{0};            // rows read
+  std::uint64_t used{0};               // rows that entered the fit
+  std::uint64_t skipped_nonfinite{0};  // nan dropouts
+  std::uint64_t rejected_outliers{0};
+};
+
+struct Provenance {
+  std::string input;
+  std::string method;
+  std::string magvec_version;
+  std::string created_utc;
+};
+
+struct CalibrationFile {
+  core::SensorModel<double> model;
+  std::optional<core::Vec3<double>> h_n_nT;
+  std::optional<SineResult> sine;
+  // 1-sigma of the paper-form parameters, by name (e.g. "ks", "O_deg", "Kof_nT", "Rm_deg").
+  std::map<std::string, std::vector<double>> sigma;
+  CalibrationQuality quality;
+  CalibrationCounts counts;
+  Provenance provenance;
+};
+
+// Serialises to JSON text (pretty, stable key order).
+std::string to_json_text(const CalibrationFile& cal);
+// Parses and validates; throws CalibrationFileError naming `source` and the offending field.
+CalibrationFile from_json_text(const std::string& text, const std::string& source);
+
+// Atomic, power-cut-safe write (temp file in the same directory, fsync, rename, fsync directory).
+void write_calibration_file(const std::string& path, const CalibrationFile& cal);
+CalibrationFile read_calibration_file(const std::string& path);
+
+// Current UTC time as ISO 8601 (for provenance).
+std::string utc_now_iso8601();
+
+}  // namespace magvec::host

@@ -1,0 +1,259 @@
+// SensorLoop: the per-sample pipeline of DESIGN.md "Core" item 7, free of any driver or OS type.
+// Per magnetometer sample: attitude aligned by the caller-supplied attitude (see AttitudeBuffer),
+// the active calibrator fed, the sample compensated with the *active* calibration, one OutputRecord
+// emitted. A calibration state machine decides when new parameters replace the active ones:
+//   idle -> collecting (progress) -> solving -> validating (held-out samples) -> applied |
+//   failed(reason)
+// The previous calibration stays active until a new one validates.
+//
+// The calibrator is a template parameter (PX4-style "control vs fusion" split: the loop owns
+// gating, state and bookkeeping; the calibrator owns the estimation math). It must provide:
+//   void begin() noexcept;                                   start a new calibration
+//   CalibratorAdd add(const Vec3<S>& m, S f_ref_nT, const Mat3<S>* r_bn) noexcept;
+//   S progress() const noexcept;                             0..1 (coverage / convergence)
+//   bool ready() const noexcept;                             enough data to solve
+//   CalibratorSolve solve(SensorModel<S>* out) noexcept;     candidate model or a failure code
+#pragma once
+
+#include <cmath>
+#include <cstdint>
+#include <limits>
+
+#include "magvec/core/compensator.hpp"
+#include "magvec/core/sensor_model.hpp"
+#include "magvec/core/types.hpp"
+
+namespace magvec::core {
+
+// Bits of OutputRecord::flags.
+enum OutputFlag : std::uint32_t {
+  kOutDropout = 1u << 0,        // raw sample not finite: no output values
+  kOutDeviceError = 1u << 1,    // the device reported an error (CRC, saturation, stuck channel)
+  kOutNoAttitude = 1u << 2,     // no valid attitude for this time: h_n not computed
+  kOutUncalibrated = 1u << 3,   // no calibration applied yet (identity model)
+  kOutCalibrating = 1u << 4,    // a calibration is in progress (output still uses the active one)
+  kOutRejectedByCal = 1u << 5,  // the calibrator gated this sample (spike)
+};
+
+enum class CalState : std::uint8_t { kIdle, kCollecting, kSolving, kValidating, kApplied, kFailed };
+
+enum class CalFailure : std::uint8_t {
+  kNone,
+  kSolverRejected,    // the calibrator refused (see solver_code)
+  kValidationFailed,  // held-out residuals not better than the active calibration / above bound
+  kNoReference,       // validation needs a scalar reference and none arrived
+};
+
+enum class CalibratorAdd : std::uint8_t { kUsed, kGated, kRejected };
+
+struct CalibratorSolve {
+  bool ok{false};
+  std::uint8_t code{0};  // calibrator-specific verdict code when !ok
+};
+
+template <typename Scalar>
+struct MagSample {
+  std::uint64_t t_us{0};
+  Vec3<Scalar> m_nT = Vec3<Scalar>::Zero();
+  Scalar f_ref_nT = std::numeric_limits<Scalar>::quiet_NaN();  // scalar reference, NaN when none
+  bool device_error{false};
+};
+
+template <typename Scalar>
+struct OutputRecord {
+  std::uint64_t t_us{0};
+  Vec3<Scalar> raw_nT = Vec3<Scalar>::Zero();
+  Vec3<Scalar> h_s_nT = Vec3<Scalar>::Zero();
+  Scalar intensity_nT{0};
+  Vec3<Scalar> h_n_nT = Vec3<Scalar>::Zero();  // ENU; valid unless kOutNoAttitude
+  std::uint32_t flags{0};
+  std::uint32_t cal_id{0};  // 0 = uncalibrated; increments with every applied calibration
+  Scalar sigma_f_nT{0};     // 1-sigma of the intensity (noise + calibration uncertainty)
+};
+
+struct LoopHealth {
+  std::uint64_t samples{0};
+  std::uint64_t dropouts{0};
+  std::uint64_t device_errors{0};
+  std::uint64_t no_attitude{0};
+  std::uint64_t cal_used{0};
+  std::uint64_t cal_gated{0};
+  std::uint64_t cal_rejected{0};
+  std::uint64_t calibrations_applied{0};
+  std::uint64_t calibrations_failed{0};
+};
+
+template <typename Scalar>
+struct LoopConfig {
+  Scalar noise_nT{1};  // magnetometer noise 1-sigma (sets validation bound, sigma_f)
+  std::uint32_t validation_samples{200};
+  Scalar validation_max_rms_factor{3};  // accept if held-out intensity RMS <= factor * noise ...
+  Scalar validation_min_rms_nT{1};      // ... or <= this floor
+  bool validate_against_active{
+      true};  // and not worse than the active calibration on the same samples
+};
+
+template <typename Scalar, typename Calibrator>
+class SensorLoop {
+ public:
+  SensorLoop(Calibrator& calibrator, const LoopConfig<Scalar>& config) noexcept
+      : calibrator_(calibrator), config_(config) {}
+
+  // Installs a calibration (e.g. loaded from the ParamStore) as the active one.
+  void set_active(const SensorModel<Scalar>& model, std::uint32_t cal_id) noexcept {
+    active_.set_model(model);
+    cal_id_ = cal_id;
+  }
+  const SensorModel<Scalar>& active_model() const noexcept { return active_.model(); }
+  std::uint32_t cal_id() const noexcept { return cal_id_; }
+
+  void start_calibration() noexcept {
+    calibrator_.begin();
+    state_ = CalState::kCollecting;
+    failure_ = CalFailure::kNone;
+    solver_code_ = 0;
+  }
+  CalState state() const noexcept { return state_; }
+  CalFailure failure() const noexcept { return failure_; }
+  std::uint8_t solver_code() const noexcept { return solver_code_; }
+  Scalar progress() const noexcept {
+    return state_ == CalState::kCollecting ? calibrator_.progress()
+                                           : Scalar(state_ == CalState::kApplied);
+  }
+  const LoopHealth& health() const noexcept { return health_; }
+  // The candidate of the last solve (valid in kValidating, kApplied, and kFailed after validation).
+  const SensorModel<Scalar>& candidate() const noexcept { return candidate_.model(); }
+  Scalar last_validation_rms_nT() const noexcept { return last_validation_rms_; }
+
+  // One magnetometer sample; r_bn is the attitude aligned to s.t_us, or nullptr when none is valid.
+  OutputRecord<Scalar> process(const MagSample<Scalar>& s, const Mat3<Scalar>* r_bn) noexcept {
+    OutputRecord<Scalar> rec;
+    rec.t_us = s.t_us;
+    rec.raw_nT = s.m_nT;
+    rec.cal_id = cal_id_;
+    ++health_.samples;
+    if (cal_id_ == 0) rec.flags |= kOutUncalibrated;
+    if (state_ == CalState::kCollecting || state_ == CalState::kSolving ||
+        state_ == CalState::kValidating) {
+      rec.flags |= kOutCalibrating;
+    }
+    if (s.device_error) {
+      rec.flags |= kOutDeviceError;
+      ++health_.device_errors;
+    }
+    Compensated<Scalar> c;
+    if (s.device_error || !active_.compensate(s.m_nT, &c)) {
+      if (!s.device_error) ++health_.dropouts;
+      rec.flags |= kOutDropout;
+      return rec;
+    }
+    rec.h_s_nT = c.h_s;
+    rec.intensity_nT = c.intensity;
+    rec.sigma_f_nT = config_.noise_nT;
+    if (r_bn != nullptr) {
+      rec.h_n_nT = Compensator<Scalar>::to_nav(c.h_b, *r_bn);
+    } else {
+      rec.flags |= kOutNoAttitude;
+      ++health_.no_attitude;
+    }
+    step_calibration(s, r_bn, &rec);
+    return rec;
+  }
+
+ private:
+  void step_calibration(const MagSample<Scalar>& s, const Mat3<Scalar>* r_bn,
+                        OutputRecord<Scalar>* rec) noexcept {
+    switch (state_) {
+      case CalState::kCollecting: {
+        const CalibratorAdd a = calibrator_.add(s.m_nT, s.f_ref_nT, r_bn);
+        if (a == CalibratorAdd::kUsed) ++health_.cal_used;
+        if (a == CalibratorAdd::kGated) {
+          ++health_.cal_gated;
+          rec->flags |= kOutRejectedByCal;
+        }
+        if (a == CalibratorAdd::kRejected) ++health_.cal_rejected;
+        if (calibrator_.ready()) state_ = CalState::kSolving;
+        break;
+      }
+      case CalState::kSolving: {
+        // Solving happens on the sample after the calibrator reported ready, so a long solve
+        // never delays the sample that completed the data set.
+        SensorModel<Scalar> model;
+        const CalibratorSolve r = calibrator_.solve(&model);
+        if (!r.ok) {
+          fail(CalFailure::kSolverRejected, r.code);
+          break;
+        }
+        candidate_.set_model(model);
+        validation_count_ = 0;
+        sum_sq_candidate_ = 0;
+        missing_reference_ = 0;
+        sum_sq_active_ = 0;
+        state_ = CalState::kValidating;
+        break;
+      }
+      case CalState::kValidating:
+        validate(s);
+        break;
+      case CalState::kIdle:
+      case CalState::kApplied:
+      case CalState::kFailed:
+        break;
+    }
+  }
+
+  void validate(const MagSample<Scalar>& s) noexcept {
+    if (!std::isfinite(s.f_ref_nT)) {
+      ++missing_reference_;
+      if (missing_reference_ > config_.validation_samples) fail(CalFailure::kNoReference, 0);
+      return;
+    }
+    Compensated<Scalar> cand;
+    Compensated<Scalar> act;
+    if (!candidate_.compensate(s.m_nT, &cand) || !active_.compensate(s.m_nT, &act)) return;
+    const Scalar rc = cand.intensity - s.f_ref_nT;
+    const Scalar ra = act.intensity - s.f_ref_nT;
+    sum_sq_candidate_ += rc * rc;
+    sum_sq_active_ += ra * ra;
+    if (++validation_count_ < config_.validation_samples) return;
+    const Scalar n = static_cast<Scalar>(validation_count_);
+    const Scalar rms_c = std::sqrt(sum_sq_candidate_ / n);
+    const Scalar rms_a = std::sqrt(sum_sq_active_ / n);
+    last_validation_rms_ = rms_c;
+    const Scalar bound = std::fmax(config_.validation_max_rms_factor * config_.noise_nT,
+                                   config_.validation_min_rms_nT);
+    const bool better = cal_id_ == 0 || !config_.validate_against_active || rms_c <= rms_a;
+    if (rms_c <= bound && better) {
+      active_ = candidate_;
+      ++cal_id_;
+      ++health_.calibrations_applied;
+      state_ = CalState::kApplied;
+    } else {
+      fail(CalFailure::kValidationFailed, 0);
+    }
+  }
+
+  void fail(CalFailure why, std::uint8_t code) noexcept {
+    failure_ = why;
+    solver_code_ = code;
+    state_ = CalState::kFailed;
+    ++health_.calibrations_failed;
+  }
+
+  Calibrator& calibrator_;
+  LoopConfig<Scalar> config_;
+  Compensator<Scalar> active_{};
+  Compensator<Scalar> candidate_{};
+  std::uint32_t cal_id_{0};
+  CalState state_{CalState::kIdle};
+  CalFailure failure_{CalFailure::kNone};
+  std::uint8_t solver_code_{0};
+  std::uint32_t validation_count_{0};
+  std::uint32_t missing_reference_{0};
+  Scalar sum_sq_candidate_{0};
+  Scalar sum_sq_active_{0};
+  Scalar last_validation_rms_{0};
+  LoopHealth health_{};
+};
+
+}  // namespace magvec::core

@@ -1,0 +1,177 @@
+#include "magvec/core/sensor_loop.hpp"
+
+#include <gtest/gtest.h>
+
+#include <random>
+
+#include "magvec/core/frames.hpp"
+#include "support/alloc_counter.hpp"
+
+namespace magvec::core {
+namespace {
+
+constexpr double kDeg = kPi<double> / 180.0;
+
+// A calibrator that "solves" to a fixed model after a number of samples; lets the loop's state
+// machine be tested independently of any estimator.
+struct FakeCalibrator {
+  SensorModel<double> result;
+  std::uint32_t needed{100};
+  std::uint32_t seen{0};
+  bool refuse{false};
+  int begins{0};
+  void begin() noexcept {
+    seen = 0;
+    ++begins;
+  }
+  CalibratorAdd add(const Vec3<double>& m, double, const Mat3<double>*) noexcept {
+    if (m.norm() > 1e6) return CalibratorAdd::kGated;
+    ++seen;
+    return CalibratorAdd::kUsed;
+  }
+  double progress() const noexcept { return std::min(1.0, seen / double(needed)); }
+  bool ready() const noexcept { return seen >= needed; }
+  CalibratorSolve solve(SensorModel<double>* out) noexcept {
+    if (refuse) return {false, 7};
+    *out = result;
+    return {true, 0};
+  }
+};
+
+SensorModel<double> truth_model() {
+  LiParams<double> p;
+  p.ks = {1.08, 1.02, 1.033};
+  p.o_rad = Vec3<double>(1.7, 3.5, 2.1) * kDeg;
+  p.kof = {400, -300, 250};
+  p.rm_rad = Vec3<double>(5.7, 2.1, 3.5) * kDeg;
+  return from_li(p);
+}
+
+struct Feed {
+  std::mt19937_64 rng{9};
+  std::normal_distribution<double> noise{0, 0.3};
+  std::uniform_real_distribution<double> ang{-170, 170};
+  Vec3<double> h_n{-4053, 25022, -47374};
+  std::uint64_t t{0};
+  MagSample<double> next(const SensorModel<double>& truth, Mat3<double>* r_bn) {
+    *r_bn =
+        r_bn_from_li(LiEuler<double>{ang(rng) * kDeg, ang(rng) * kDeg / 3, ang(rng) * kDeg / 3});
+    MagSample<double> s;
+    s.t_us = (t += 5000);
+    s.m_nT = truth.predict_raw(*r_bn, h_n) + Vec3<double>(noise(rng), noise(rng), noise(rng));
+    s.f_ref_nT = h_n.norm();
+    return s;
+  }
+};
+
+TEST(SensorLoop, AppliesAValidCalibrationAfterValidation) {
+  FakeCalibrator cal;
+  cal.result = truth_model();
+  LoopConfig<double> cfg;
+  cfg.noise_nT = 0.3;
+  SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+  Feed feed;
+  Mat3<double> r;
+  EXPECT_EQ(loop.state(), CalState::kIdle);
+  OutputRecord<double> rec = loop.process(feed.next(truth_model(), &r), &r);
+  EXPECT_TRUE(rec.flags & kOutUncalibrated);
+  EXPECT_EQ(rec.cal_id, 0u);
+  loop.start_calibration();
+  int steps = 0;
+  while (loop.state() != CalState::kApplied && loop.state() != CalState::kFailed && steps < 10000) {
+    rec = loop.process(feed.next(truth_model(), &r), &r);
+    ++steps;
+  }
+  ASSERT_EQ(loop.state(), CalState::kApplied);
+  EXPECT_EQ(steps, 100 + 1 + 200);  // collect, solve, validate
+  EXPECT_EQ(loop.cal_id(), 1u);
+  EXPECT_LT(loop.last_validation_rms_nT(), 1.0);
+  rec = loop.process(feed.next(truth_model(), &r), &r);
+  EXPECT_EQ(rec.cal_id, 1u);
+  EXPECT_FALSE(rec.flags & kOutUncalibrated);
+  EXPECT_NEAR(rec.intensity_nT, feed.h_n.norm(), 3.0);
+  EXPECT_LT((rec.h_n_nT - feed.h_n).norm(), 20.0);  // noise only (no INS noise here)
+  EXPECT_EQ(loop.health().calibrations_applied, 1u);
+}
+
+TEST(SensorLoop, KeepsThePreviousCalibrationWhenTheNewOneFailsValidation) {
+  FakeCalibrator cal;
+  cal.result = truth_model();
+  cal.result.o += Vec3<double>(300, 0, 0);  // a bad candidate
+  LoopConfig<double> cfg;
+  cfg.noise_nT = 0.3;
+  SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+  loop.set_active(truth_model(), 4);
+  Feed feed;
+  Mat3<double> r;
+  loop.start_calibration();
+  for (int i = 0; i < 400; ++i)
+    (void)loop.process(feed.next(truth_model(), &r), &r);
+  EXPECT_EQ(loop.state(), CalState::kFailed);
+  EXPECT_EQ(loop.failure(), CalFailure::kValidationFailed);
+  EXPECT_EQ(loop.cal_id(), 4u);
+  EXPECT_LT((loop.active_model().o - truth_model().o).norm(), 1e-12);
+  EXPECT_EQ(loop.health().calibrations_failed, 1u);
+}
+
+TEST(SensorLoop, ReportsSolverRefusalWithItsCode) {
+  FakeCalibrator cal;
+  cal.refuse = true;
+  SensorLoop<double, FakeCalibrator> loop(cal, LoopConfig<double>{});
+  Feed feed;
+  Mat3<double> r;
+  loop.start_calibration();
+  for (int i = 0; i < 150; ++i)
+    (void)loop.process(feed.next(truth_model(), &r), &r);
+  EXPECT_EQ(loop.state(), CalState::kFailed);
+  EXPECT_EQ(loop.failure(), CalFailure::kSolverRejected);
+  EXPECT_EQ(loop.solver_code(), 7);
+}
+
+TEST(SensorLoop, CountsDropoutsDeviceErrorsMissingAttitudeAndGatedSamples) {
+  FakeCalibrator cal;
+  SensorLoop<double, FakeCalibrator> loop(cal, LoopConfig<double>{});
+  loop.start_calibration();
+  MagSample<double> s;
+  s.m_nT = Vec3<double>(std::nan(""), 1, 2);
+  OutputRecord<double> rec = loop.process(s, nullptr);
+  EXPECT_TRUE(rec.flags & kOutDropout);
+  s.m_nT = Vec3<double>(1, 2, 3);
+  s.device_error = true;
+  rec = loop.process(s, nullptr);
+  EXPECT_TRUE(rec.flags & kOutDeviceError);
+  s.device_error = false;
+  rec = loop.process(s, nullptr);
+  EXPECT_TRUE(rec.flags & kOutNoAttitude);
+  s.m_nT = Vec3<double>(1e7, 0, 0);
+  rec = loop.process(s, nullptr);
+  EXPECT_TRUE(rec.flags & kOutRejectedByCal);
+  const LoopHealth& h = loop.health();
+  EXPECT_EQ(h.samples, 4u);
+  EXPECT_EQ(h.dropouts, 1u);
+  EXPECT_EQ(h.device_errors, 1u);
+  EXPECT_EQ(h.no_attitude, 2u);
+  EXPECT_EQ(h.cal_gated, 1u);
+  EXPECT_EQ(h.cal_used, 1u);
+}
+
+TEST(SensorLoop, PerSamplePathDoesNotAllocate) {
+  FakeCalibrator cal;
+  cal.result = truth_model();
+  SensorLoop<double, FakeCalibrator> loop(cal, LoopConfig<double>{});
+  Feed feed;
+  Mat3<double> r;
+  loop.start_calibration();
+  Eigen::internal::set_is_malloc_allowed(false);
+  const test::AllocationScope scope;
+  double sum = 0;
+  for (int i = 0; i < 10000; ++i)
+    sum += loop.process(feed.next(truth_model(), &r), &r).intensity_nT;
+  const std::size_t n = scope.count();
+  Eigen::internal::set_is_malloc_allowed(true);
+  EXPECT_EQ(n, 0u);
+  EXPECT_TRUE(std::isfinite(sum));
+}
+
+}  // namespace
+}  // namespace magvec::core

@@ -1,16 +1,27 @@
 // magvec: command-line front end (simulate, calibrate, apply, run, replay, report).
+// Subcommands register themselves (commands.hpp); errors end with a message and a non-zero exit.
 #include <CLI/CLI.hpp>
+#include <exception>
 #include <iostream>
 
+#include "commands.hpp"
 #include "magvec/version.hpp"
 
 int main(int argc, char** argv) {
   CLI::App app{"magvec: strapdown magnetic vector calibration and compensation"};
   app.set_version_flag("--version", std::string("magvec ") + magvec::kVersion);
   app.require_subcommand(0, 1);
-  CLI11_PARSE(app, argc, argv);
-  if (app.get_subcommands().empty()) {
-    std::cout << app.help();
+  magvec::host::cli::register_simulate(app);
+  magvec::host::cli::register_demo(app);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return app.exit(e);
+  } catch (const std::exception& e) {
+    std::cerr << "magvec: error: " << e.what() << "\n";
+    return 1;
   }
+  if (app.get_subcommands().empty())
+    std::cout << app.help();
   return 0;
 }

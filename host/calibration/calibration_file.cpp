@@ -7,7 +7,7 @@
 #include <fstream>
 #include <sstream>
 
-#include "io/atomic_file.hpp"
+#include "magvec/host/io/csv.hpp"
 
 namespace magvec::host {
 namespace {
@@ -203,7 +203,9 @@ CalibrationFile from_json_text(const std::string& text, const std::string& sourc
 }
 
 void write_calibration_file(const std::string& path, const CalibrationFile& cal) {
-  io::write_file_atomically(path, to_json_text(cal));
+  io::AtomicFile file(path);
+  file.write(to_json_text(cal));
+  file.commit();
 }
 
 CalibrationFile read_calibration_file(const std::string& path) {

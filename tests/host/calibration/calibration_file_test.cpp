@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include <nlohmann/json.hpp>
+
 #include <filesystem>
 #include <fstream>
 
@@ -64,17 +66,18 @@ TEST(CalibrationFile, RejectsBadFilesWithClearErrors) {
   expect_error("[]", "object");
   expect_error(R"({"schema":"other/9"})", "schema");
   expect_error(R"({"schema":"magvec-calibration/1"})", "'W'");
-  std::string bad_w = good;
-  bad_w.replace(bad_w.find("\"W\": ["), 6, "\"W\": [\"x\",");
-  expect_error(bad_w, "W");
+  nlohmann::json bad_w = nlohmann::json::parse(good);
+  bad_w["W"][4] = "x";
+  expect_error(bad_w.dump(), "'W' holds a non-number");
+  bad_w["W"] = {1, 2, 3};
+  expect_error(bad_w.dump(), "'W' must be an array of 9");
   expect_error(R"({"schema":"magvec-calibration/1","W":[0,0,0,0,0,0,0,0,0],"o_nT":[0,0,0],"Rm_quat":[1,0,0,0]})",
                "singular");
   expect_error(R"({"schema":"magvec-calibration/1","W":[1,0,0,0,1,0,0,0,1],"o_nT":[0,0,0],"Rm_quat":[2,0,0,0]})",
                "unit quaternion");
-  std::string edited = good;
-  const std::size_t at = edited.find("\"Cinv\": [") + 9;
-  edited.insert(at, "5");  // first element 0.9... becomes 50.9...
-  expect_error(edited, "disagrees");
+  nlohmann::json edited = nlohmann::json::parse(good);
+  edited["ge"]["Cinv"][0] = 50.0;  // a hand edit of a derived block
+  expect_error(edited.dump(), "disagrees");
 }
 
 TEST(CalibrationFile, AtomicWriteReplacesAndLeavesNoTemporaries) {

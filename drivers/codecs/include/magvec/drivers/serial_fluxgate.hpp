@@ -150,12 +150,14 @@ template <typename Decoder>
 class SerialFluxgate final : public hal::MagnetometerSource {
  public:
   static constexpr std::size_t kChunk = 64;
+  static constexpr int kMaxChunks = 16;
   SerialFluxgate(hal::SerialPort& port, const hal::Clock& clock, Decoder decoder,
                  std::uint32_t latency_us = 0) noexcept
       : port_(port), clock_(clock), decoder_(decoder), latency_us_(latency_us) {}
 
   hal::Status read(hal::MagnetometerSample& out, std::uint32_t timeout_us) noexcept override {
-    for (int attempt = 0; attempt < 2; ++attempt) {
+    // Bounded work per call: at most kMaxChunks reads (the first may wait, the rest poll).
+    for (int attempt = 0; attempt < kMaxChunks; ++attempt) {
       if (take_from_buffer(out)) return hal::Status::kOk;
       std::size_t n = 0;
       const hal::Status s = port_.read(buf_, n, attempt == 0 ? timeout_us : 0);
@@ -163,7 +165,7 @@ class SerialFluxgate final : public hal::MagnetometerSource {
         ++bus_errors_;
         return s;
       }
-      if (n == 0) return hal::Status::kTimeout;
+      if (n == 0) return attempt == 0 ? hal::Status::kTimeout : hal::Status::kNoData;
       const std::uint64_t now = clock_.now_us();
       rx_t_us_ = now > latency_us_ ? now - latency_us_ : 0;
       pos_ = 0;

@@ -17,7 +17,8 @@ constexpr std::size_t kFlashSize = 8 * kSector;
 
 std::vector<std::uint8_t> blob(std::uint8_t seed, std::size_t n) {
   std::vector<std::uint8_t> b(n);
-  for (std::size_t i = 0; i < n; ++i) b[i] = static_cast<std::uint8_t>(seed * 31 + i * 7);
+  for (std::size_t i = 0; i < n; ++i)
+    b[i] = static_cast<std::uint8_t>(seed * 31 + i * 7);
   return b;
 }
 

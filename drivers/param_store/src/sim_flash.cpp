@@ -5,22 +5,27 @@ namespace magvec::drivers {
 
 SimFlash::SimFlash(std::span<std::uint8_t> storage, std::size_t sector_size) noexcept
     : storage_(storage), sector_size_(sector_size == 0 ? 1 : sector_size) {
-  for (auto& b : storage_) b = 0xFF;
+  for (auto& b : storage_)
+    b = 0xFF;
 }
 
 hal::Status SimFlash::read(std::size_t offset, std::span<std::uint8_t> out) const noexcept {
-  if (!powered_) return hal::Status::kPowerLoss;
+  if (!powered_)
+    return hal::Status::kPowerLoss;
   if (offset > storage_.size() || out.size() > storage_.size() - offset) {
     return hal::Status::kInvalidArgument;
   }
-  for (std::size_t i = 0; i < out.size(); ++i) out[i] = storage_[offset + i];
+  for (std::size_t i = 0; i < out.size(); ++i)
+    out[i] = storage_[offset + i];
   return hal::Status::kOk;
 }
 
 hal::Status SimFlash::erase_sector(std::size_t sector_index) noexcept {
-  if (!powered_) return hal::Status::kPowerLoss;
+  if (!powered_)
+    return hal::Status::kPowerLoss;
   const std::size_t n_sectors = storage_.size() / sector_size_;
-  if (sector_index >= n_sectors) return hal::Status::kInvalidArgument;
+  if (sector_index >= n_sectors)
+    return hal::Status::kInvalidArgument;
   std::size_t bytes = sector_size_;
   bool cut = false;
   if (erase_cut_armed_) {
@@ -32,7 +37,8 @@ hal::Status SimFlash::erase_sector(std::size_t sector_index) noexcept {
       --erase_budget_;
     }
   }
-  for (std::size_t i = 0; i < bytes; ++i) storage_[sector_index * sector_size_ + i] = 0xFF;
+  for (std::size_t i = 0; i < bytes; ++i)
+    storage_[sector_index * sector_size_ + i] = 0xFF;
   ++erases_;
   if (cut) {
     powered_ = false;
@@ -42,7 +48,8 @@ hal::Status SimFlash::erase_sector(std::size_t sector_index) noexcept {
 }
 
 hal::Status SimFlash::program(std::size_t offset, std::span<const std::uint8_t> data) noexcept {
-  if (!powered_) return hal::Status::kPowerLoss;
+  if (!powered_)
+    return hal::Status::kPowerLoss;
   if (offset > storage_.size() || data.size() > storage_.size() - offset) {
     return hal::Status::kInvalidArgument;
   }
@@ -55,7 +62,8 @@ hal::Status SimFlash::program(std::size_t offset, std::span<const std::uint8_t> 
     }
     storage_[offset + i] &= data[i];
     ++bytes_programmed_;
-    if (program_cut_armed_) --program_budget_;
+    if (program_cut_armed_)
+      --program_budget_;
   }
   return hal::Status::kOk;
 }

@@ -26,8 +26,10 @@ template GeParams<float> to_ge(const SensorModel<float>&) noexcept;
 template GeParams<double> to_ge(const SensorModel<double>&) noexcept;
 template SensorModel<float> from_sine(const SineParams<float>&) noexcept;
 template SensorModel<double> from_sine(const SineParams<double>&) noexcept;
-template ConversionStatus to_sine(const SensorModel<float>&, SineParams<float>*, Mat3<float>*) noexcept;
-template ConversionStatus to_sine(const SensorModel<double>&, SineParams<double>*, Mat3<double>*) noexcept;
+template ConversionStatus to_sine(const SensorModel<float>&, SineParams<float>*,
+                                  Mat3<float>*) noexcept;
+template ConversionStatus to_sine(const SensorModel<double>&, SineParams<double>*,
+                                  Mat3<double>*) noexcept;
 template Mat3<float> r_bn_from_quat(const Quat<float>&) noexcept;
 template Mat3<double> r_bn_from_quat(const Quat<double>&) noexcept;
 template Quat<float> quat_from_r_bn(const Mat3<float>&) noexcept;

@@ -23,10 +23,10 @@ constexpr Frame kSaturatedFrame{0x01, 0x0F, 0x00, 0x7F, 0xFF, 0xFF, 0x00, 0x00, 
                                 0x80, 0x00, 0x00, 0x00, 0x00, 0x00, 0xDB, 0x55, 0x00};
 
 TEST(Ads131m04, CommandWords) {
-  EXPECT_EQ(rreg(kRegStatus, 1), 0xA080);       // 101 000001 0000000
-  EXPECT_EQ(wreg(kRegGain1, 1), 0x6200);        // 011 000100 0000000
+  EXPECT_EQ(rreg(kRegStatus, 1), 0xA080);  // 101 000001 0000000
+  EXPECT_EQ(wreg(kRegGain1, 1), 0x6200);   // 011 000100 0000000
   EXPECT_EQ(wreg_response(kRegGain1, 1), 0x4200);
-  EXPECT_EQ(wreg(kRegMode, 3), 0x6102);         // 3 registers from 02h: n = 2
+  EXPECT_EQ(wreg(kRegMode, 3), 0x6102);  // 3 registers from 02h: n = 2
   EXPECT_EQ(gain1_register({1, 2, 3, 7}), 0x7321);
   EXPECT_EQ(gain_from_code(0), 1.0);
   EXPECT_EQ(gain_from_code(7), 128.0);
@@ -93,7 +93,7 @@ TEST(Ads131FrameDecoder, ConvertsAxesThroughChannelMapAndTransferCoefficients) {
   hal::MagnetometerSample s;
   ASSERT_EQ(dec.decode(kNormalFrame, 1234, s), hal::Status::kOk);
   EXPECT_EQ(s.t_us, 1234u);
-  EXPECT_NEAR(s.m_nT[0], 1706.6659927368164, 1e-9);          // 1193046 * 1.2/2^23 * 1e4
+  EXPECT_NEAR(s.m_nT[0], 1706.6659927368164, 1e-9);           // 1193046 * 1.2/2^23 * 1e4
   EXPECT_NEAR(s.m_nT[1], -2 * 0.6 / 8388608.0 * 2e4, 1e-15);  // gain 2
   EXPECT_NEAR(s.m_nT[2], 1 * 1.2 / 8388608.0 * 5e3, 1e-15);
   EXPECT_EQ(s.raw[0], 1193046);
@@ -146,8 +146,10 @@ TEST(Ads131FrameDecoder, SaturationCrcStatusAndStuckDetection) {
 // A minimal register-level model of the ADC on the other side of the SPI bus.
 class FakeAdc final : public hal::SpiBus, public hal::DataReadyLine {
  public:
-  hal::Status transfer(std::span<const std::uint8_t> tx, std::span<std::uint8_t> rx) noexcept override {
-    if (tx.size() != kFrameBytes || rx.size() != kFrameBytes) return hal::Status::kInvalidArgument;
+  hal::Status transfer(std::span<const std::uint8_t> tx,
+                       std::span<std::uint8_t> rx) noexcept override {
+    if (tx.size() != kFrameBytes || rx.size() != kFrameBytes)
+      return hal::Status::kInvalidArgument;
     if (fail_next) {
       fail_next = false;
       return hal::Status::kBusError;
@@ -158,13 +160,15 @@ class FakeAdc final : public hal::SpiBus, public hal::DataReadyLine {
       out[4] ^= 0x10;
       corrupt_next = false;
     }
-    for (std::size_t i = 0; i < kFrameBytes; ++i) rx[i] = out[i];
+    for (std::size_t i = 0; i < kFrameBytes; ++i)
+      rx[i] = out[i];
     const std::uint16_t cmd = decode_word16(tx.data());
     if (cmd == kCmdReset) {
       next_response = kResetResponse;
     } else if ((cmd & 0xE000) == 0x6000) {
       const auto addr = static_cast<std::uint8_t>((cmd >> 7) & 0x3F);
-      if (addr == kRegGain1) gain1 = decode_word16(tx.data() + 3);
+      if (addr == kRegGain1)
+        gain1 = decode_word16(tx.data() + 3);
       next_response = static_cast<std::uint16_t>(0x4000 | (cmd & 0x1FFF));
     } else {
       next_response = status;
@@ -172,7 +176,8 @@ class FakeAdc final : public hal::SpiBus, public hal::DataReadyLine {
     return hal::Status::kOk;
   }
   hal::Status wait_edge(hal::EdgeEvent& ev, std::uint32_t) noexcept override {
-    if (edges.empty()) return hal::Status::kTimeout;
+    if (edges.empty())
+      return hal::Status::kTimeout;
     ev = edges.front();
     edges.pop_front();
     return hal::Status::kOk;
@@ -223,7 +228,8 @@ TEST(Ads131Fluxgate, InitWritesGainAndReadsSamplesOnFallingEdges) {
     adc.edges.push_back({4000u + static_cast<std::uint64_t>(i), hal::Edge::kFalling});
   }
   const std::size_t before = scope.count();  // deque growth above is the test's, not the driver's
-  for (int i = 0; i < 100; ++i) ASSERT_EQ(drv.read(s, 1000), hal::Status::kOk);
+  for (int i = 0; i < 100; ++i)
+    ASSERT_EQ(drv.read(s, 1000), hal::Status::kOk);
   EXPECT_EQ(scope.count(), before);
 }
 
@@ -235,10 +241,12 @@ TEST(Ads131Fluxgate, InitFailsOnWrongResetAcknowledge) {
   // A device that answers STATUS to everything (e.g. ADS131M08 would answer FF28h): not ready.
   class Mute final : public hal::SpiBus {
    public:
-    hal::Status transfer(std::span<const std::uint8_t>, std::span<std::uint8_t> rx) noexcept override {
+    hal::Status transfer(std::span<const std::uint8_t>,
+                         std::span<std::uint8_t> rx) noexcept override {
       Frame f{};
       encode_response_frame(0x0500, {0, 0, 0, 0}, f);
-      for (std::size_t i = 0; i < kFrameBytes; ++i) rx[i] = f[i];
+      for (std::size_t i = 0; i < kFrameBytes; ++i)
+        rx[i] = f[i];
       return hal::Status::kOk;
     }
   } mute;

@@ -13,12 +13,14 @@ namespace {
 using core::Mat3;
 constexpr double kDeg = core::kPi<double> / 180.0;
 
-hal::CanFrame frame(std::uint32_t id, std::initializer_list<std::uint8_t> bytes, std::uint64_t t = 0) {
+hal::CanFrame frame(std::uint32_t id, std::initializer_list<std::uint8_t> bytes,
+                    std::uint64_t t = 0) {
   hal::CanFrame f;
   f.id = id;
   f.dlc = static_cast<std::uint8_t>(bytes.size());
   std::size_t i = 0;
-  for (auto b : bytes) f.data[i++] = b;
+  for (auto b : bytes)
+    f.data[i++] = b;
   f.t_us = t;
   return f;
 }
@@ -88,7 +90,8 @@ TEST(SbgCan, QuaternionAndEulerPathsAgree) {
     ASSERT_NEAR((from_q - from_e).norm(), 0, 1e-12);
     const std::array<double, 4> back = sbg_quat_from_r_bn(from_e);
     const double sign = q[0] < 0 ? -1 : 1;
-    for (std::size_t k = 0; k < 4; ++k) ASSERT_NEAR(back[k], sign * q[k], 1e-12);
+    for (std::size_t k = 0; k < 4; ++k)
+      ASSERT_NEAR(back[k], sign * q[k], 1e-12);
   }
 }
 
@@ -100,7 +103,8 @@ TEST(SbgCan, EncodersProduceTheDocumentedBytes) {
   EXPECT_EQ(info.data[3], 0x12);
   const hal::CanFrame e = encode_ekf_euler(0.1, -0.2, 3.1415);
   const std::array<std::uint8_t, 6> eb{0xE8, 0x03, 0x30, 0xF8, 0xB7, 0x7A};
-  for (std::size_t i = 0; i < 6; ++i) EXPECT_EQ(e.data[i], eb[i]);
+  for (std::size_t i = 0; i < 6; ++i)
+    EXPECT_EQ(e.data[i], eb[i]);
   const hal::CanFrame q = encode_ekf_quat({std::sqrt(0.5), 0, 0, std::sqrt(0.5)});
   EXPECT_EQ(q.data[0], 0x82);
   EXPECT_EQ(q.data[1], 0x5A);
@@ -171,7 +175,8 @@ TEST(SbgCan, CorruptTruncatedAndOutOfOrderFrames) {
 class FakeCan final : public hal::CanBus {
  public:
   hal::Status receive(hal::CanFrame& out, std::uint32_t) noexcept override {
-    if (next >= frames.size()) return hal::Status::kTimeout;
+    if (next >= frames.size())
+      return hal::Status::kTimeout;
     out = frames[next++];
     return hal::Status::kOk;
   }

@@ -13,8 +13,9 @@ namespace {
 
 std::vector<hal::MagnetometerSample> feed_all(AsciiLineDecoder& d, const char* text) {
   std::vector<hal::MagnetometerSample> out;
-  d.feed(std::span<const std::uint8_t>(reinterpret_cast<const std::uint8_t*>(text), std::strlen(text)),
-         0, [&](const hal::MagnetometerSample& s) { out.push_back(s); });
+  d.feed(
+      std::span<const std::uint8_t>(reinterpret_cast<const std::uint8_t*>(text), std::strlen(text)),
+      0, [&](const hal::MagnetometerSample& s) { out.push_back(s); });
   return out;
 }
 
@@ -39,7 +40,7 @@ TEST(AsciiLine, ConfigurableOrderSeparatorScaleAndNoStartChar) {
   c.tag = {};
   c.field_of_axis = {2, 0, 1};  // line is "y z x"
   c.field_count = 3;
-  c.scale = 1000.0;              // values in uT
+  c.scale = 1000.0;  // values in uT
   c.checksum = ChecksumMode::kNone;
   AsciiLineDecoder d(c);
   const auto s = feed_all(d, "-2.5 40.125 1.5e1\r\n\r\n7 8 9\n");
@@ -59,12 +60,12 @@ TEST(AsciiLine, RejectsAndCountsBadLines) {
   AsciiLineDecoder d(c);
   EXPECT_TRUE(feed_all(d, "$MAG,12345.6,-2345.1,40000.0*57\r\n").empty());  // wrong checksum
   EXPECT_EQ(d.counters().crc_errors, 1u);
-  EXPECT_TRUE(feed_all(d, "$MAG,1,2,3\n").empty());              // checksum required
-  EXPECT_TRUE(feed_all(d, "$MAG,1,2*48\n").empty());             // 3 fields (checksum is right)
-  EXPECT_TRUE(feed_all(d, "$MAX,1,2,3*48\n").empty());           // wrong tag
-  EXPECT_TRUE(feed_all(d, "$MAG,1,2x,3*2F\n").empty());          // not a number
-  EXPECT_TRUE(feed_all(d, "$MAG,1,,3*65\n").empty());            // empty field
-  EXPECT_TRUE(feed_all(d, "$MAG,1,2,3*G1\n").empty());           // bad hex
+  EXPECT_TRUE(feed_all(d, "$MAG,1,2,3\n").empty());                  // checksum required
+  EXPECT_TRUE(feed_all(d, "$MAG,1,2*48\n").empty());                 // 3 fields (checksum is right)
+  EXPECT_TRUE(feed_all(d, "$MAX,1,2,3*48\n").empty());               // wrong tag
+  EXPECT_TRUE(feed_all(d, "$MAG,1,2x,3*2F\n").empty());              // not a number
+  EXPECT_TRUE(feed_all(d, "$MAG,1,,3*65\n").empty());                // empty field
+  EXPECT_TRUE(feed_all(d, "$MAG,1,2,3*G1\n").empty());               // bad hex
   EXPECT_TRUE(feed_all(d, "$MAG,1,2,$MAG,1,2,3*57\n").size() == 1);  // restart on '$'
   EXPECT_EQ(d.counters().malformed, 7u);
   std::string longline = "$MAG," + std::string(200, '1') + ",2,3*00\n";
@@ -78,8 +79,8 @@ TEST(AsciiLine, EncodeDecodeRoundTrip) {
   std::array<char, 128> buf{};
   const std::size_t n = d.encode({12345.678, -0.001, -49999.5}, true, buf);
   ASSERT_GT(n, 0u);
-  EXPECT_EQ(std::string(buf.data(), n), "$MAG,12345.678,-0.001,-49999.500*" +
-                                            std::string(buf.data() + n - 4, 2) + "\r\n");
+  EXPECT_EQ(std::string(buf.data(), n),
+            "$MAG,12345.678,-0.001,-49999.500*" + std::string(buf.data() + n - 4, 2) + "\r\n");
   const auto s = feed_all(d, std::string(buf.data(), n).c_str());
   ASSERT_EQ(s.size(), 1u);
   EXPECT_DOUBLE_EQ(s[0].m_nT[2], -49999.5);
@@ -99,7 +100,8 @@ TEST(AsciiLine, ResynchronisesAfterRandomGarbage) {
   std::size_t garbage = 0;
   for (int i = 0; i < 2000; ++i) {
     const int g = glen(rng);
-    for (int k = 0; k < g; ++k) stream.push_back(static_cast<std::uint8_t>(byte(rng)));
+    for (int k = 0; k < g; ++k)
+      stream.push_back(static_cast<std::uint8_t>(byte(rng)));
     garbage += static_cast<std::size_t>(g);
     std::array<double, 3> v{std::round(val(rng) * 1000) / 1000, std::round(val(rng) * 1000) / 1000,
                             std::round(val(rng) * 1000) / 1000};
@@ -114,12 +116,14 @@ TEST(AsciiLine, ResynchronisesAfterRandomGarbage) {
   magvec::test::AllocationScope scope;
   for (const std::uint8_t b : stream) {
     hal::MagnetometerSample s;
-    if (d.push(b, 0, s) == hal::Status::kOk) got.push_back(s.m_nT);  // reserved: no allocation
+    if (d.push(b, 0, s) == hal::Status::kOk)
+      got.push_back(s.m_nT);  // reserved: no allocation
   }
   EXPECT_EQ(scope.count(), 0u);
   ASSERT_EQ(got.size(), truth.size());
   for (std::size_t i = 0; i < truth.size(); ++i) {
-    for (std::size_t a = 0; a < 3; ++a) ASSERT_NEAR(got[i][a], truth[i][a], 1e-9) << i;
+    for (std::size_t a = 0; a < 3; ++a)
+      ASSERT_NEAR(got[i][a], truth[i][a], 1e-9) << i;
   }
   const hal::MagCounters& c = d.counters();
   EXPECT_GT(c.garbage_bytes, garbage / 2);
@@ -153,7 +157,8 @@ TEST(Hmr2300, DatasheetRecords) {
   EXPECT_EQ(out.size(), 2u);
   // Two out-of-range records (7FFFh > 30000) never lock.
   Hmr2300BinaryDecoder d2;
-  const std::array<std::uint8_t, 14> oor{0x7F, 0xFF, 0, 0, 0, 0, 0x0D, 0x7F, 0xFF, 0, 0, 0, 0, 0x0D};
+  const std::array<std::uint8_t, 14> oor{0x7F, 0xFF, 0, 0, 0, 0, 0x0D,
+                                         0x7F, 0xFF, 0, 0, 0, 0, 0x0D};
   d2.feed(oor, 0, [&](const hal::MagnetometerSample& s) { out.push_back(s); });
   EXPECT_EQ(out.size(), 2u);
 }
@@ -169,7 +174,8 @@ TEST(Hmr2300, ResynchronisesAfterRandomGarbage) {
   std::size_t garbage = 0;
   for (int gi = 0; gi < 500; ++gi) {
     const int g = glen(rng);
-    for (int k = 0; k < g; ++k) stream.push_back(static_cast<std::uint8_t>(byte(rng)));
+    for (int k = 0; k < g; ++k)
+      stream.push_back(static_cast<std::uint8_t>(byte(rng)));
     garbage += static_cast<std::size_t>(g);
     const int n = group(rng);
     for (int r = 0; r < n; ++r) {
@@ -190,7 +196,8 @@ TEST(Hmr2300, ResynchronisesAfterRandomGarbage) {
   // Every true record appears, in order (subsequence match).
   std::size_t j = 0;
   for (const auto& g : got) {
-    if (j < truth.size() && g == truth[j]) ++j;
+    if (j < truth.size() && g == truth[j])
+      ++j;
   }
   EXPECT_EQ(j, truth.size());
   // A false record needs a random 0Dh at the one position where the decoder looks (p = 1/256 per
@@ -205,7 +212,8 @@ class FakeSerial final : public hal::SerialPort, public hal::Clock {
  public:
   hal::Status read(std::span<std::uint8_t> buf, std::size_t& n, std::uint32_t) noexcept override {
     n = 0;
-    while (n < buf.size() && n < 5 && pos < data.size()) buf[n++] = data[pos++];  // 5-byte chunks
+    while (n < buf.size() && n < 5 && pos < data.size())
+      buf[n++] = data[pos++];  // 5-byte chunks
     return n ? hal::Status::kOk : hal::Status::kTimeout;
   }
   hal::Status write(std::span<const std::uint8_t> d, std::size_t& n) noexcept override {
@@ -227,7 +235,8 @@ TEST(SerialFluxgate, MagnetometerSourceOverSerialPort) {
   EXPECT_DOUBLE_EQ(s.m_nT[2], 3);
   EXPECT_EQ(s.t_us, 4000u);
   hal::Status st = hal::Status::kNoData;
-  for (int i = 0; i < 10 && st != hal::Status::kOk; ++i) st = src.read(s, 100);
+  for (int i = 0; i < 10 && st != hal::Status::kOk; ++i)
+    st = src.read(s, 100);
   ASSERT_EQ(st, hal::Status::kOk);
   EXPECT_DOUBLE_EQ(s.m_nT[0], 4);
   EXPECT_EQ(src.read(s, 100), hal::Status::kTimeout);

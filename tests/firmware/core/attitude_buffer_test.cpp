@@ -9,11 +9,15 @@ namespace magvec::core {
 namespace {
 
 using Q = Quat<double>;
-Q about_z(double angle) { return Q(Eigen::AngleAxis<double>(angle, Vec3<double>::UnitZ())); }
+Q about_z(double angle) {
+  return Q(Eigen::AngleAxis<double>(angle, Vec3<double>::UnitZ()));
+}
 Q about(const Vec3<double>& axis, double angle) {
   return Q(Eigen::AngleAxis<double>(angle, axis.normalized()));
 }
-double angle_between(const Q& a, const Q& b) { return a.angularDistance(b); }
+double angle_between(const Q& a, const Q& b) {
+  return a.angularDistance(b);
+}
 
 TEST(AttitudeBuffer, SlerpIsExactForConstantRateAboutAFixedAxis) {
   const Vec3<double> axis(0.3, -0.5, 0.8);
@@ -42,8 +46,9 @@ TEST(AttitudeBuffer, FloatMatchesDouble) {
   bf.insert(10000, Quat<float>(Eigen::AngleAxis<float>(0.3f, Vec3<float>::UnitX())));
   const auto r = bf.at(2500);
   ASSERT_EQ(r.status, AttitudeQueryStatus::kInterpolated);
-  EXPECT_NEAR(r.q_nb.angularDistance(Quat<float>(Eigen::AngleAxis<float>(0.15f, Vec3<float>::UnitX()))),
-              0.0f, 2e-6f);
+  EXPECT_NEAR(
+      r.q_nb.angularDistance(Quat<float>(Eigen::AngleAxis<float>(0.15f, Vec3<float>::UnitX()))),
+      0.0f, 2e-6f);
 }
 
 TEST(AttitudeBuffer, StalenessGapAndLimits) {

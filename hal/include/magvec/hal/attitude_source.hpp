@@ -19,19 +19,19 @@ enum AttitudeFlag : std::uint32_t {
 };
 
 struct AttitudeSample {
-  std::uint64_t t_us{0};                    // validity time on the hal::Clock time base
-  std::uint64_t t_ins_us{0};                // validity time on the INS clock (as reported)
-  std::array<double, 4> q_nb{1, 0, 0, 0};   // unit quaternion (w, x, y, z), body RFU -> ENU
-  std::array<double, 3> sigma_rad{};        // 1-sigma roll, pitch, yaw accuracy (rad)
-  std::uint32_t flags{0};                   // AttitudeFlag bits
-  std::uint8_t solution_mode{0};            // INS-specific solution mode (SBG: 0..4)
+  std::uint64_t t_us{0};                   // validity time on the hal::Clock time base
+  std::uint64_t t_ins_us{0};               // validity time on the INS clock (as reported)
+  std::array<double, 4> q_nb{1, 0, 0, 0};  // unit quaternion (w, x, y, z), body RFU -> ENU
+  std::array<double, 3> sigma_rad{};       // 1-sigma roll, pitch, yaw accuracy (rad)
+  std::uint32_t flags{0};                  // AttitudeFlag bits
+  std::uint8_t solution_mode{0};           // INS-specific solution mode (SBG: 0..4)
 };
 
 struct AttitudeCounters {
-  std::uint32_t samples{0};      // attitude samples delivered
-  std::uint32_t malformed{0};    // frames with a wrong length or out-of-range content
-  std::uint32_t missing_time{0}; // attitude frames without a matching time frame
-  std::uint32_t ignored{0};      // frames with an ID the decoder does not use
+  std::uint32_t samples{0};       // attitude samples delivered
+  std::uint32_t malformed{0};     // frames with a wrong length or out-of-range content
+  std::uint32_t missing_time{0};  // attitude frames without a matching time frame
+  std::uint32_t ignored{0};       // frames with an ID the decoder does not use
   std::uint32_t bus_errors{0};
 };
 

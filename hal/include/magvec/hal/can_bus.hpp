@@ -9,7 +9,7 @@
 namespace magvec::hal {
 
 struct CanFrame {
-  std::uint32_t id{0};                 // 11-bit standard or 29-bit extended identifier
+  std::uint32_t id{0};  // 11-bit standard or 29-bit extended identifier
   bool extended{false};
   std::uint8_t dlc{0};                 // 0..8 data bytes
   std::array<std::uint8_t, 8> data{};  // bytes beyond dlc are zero

@@ -13,7 +13,8 @@ class SpiBus {
  public:
   // tx and rx must have the same size (else kInvalidArgument); rx may alias nothing in tx.
   // The caller owns both buffers; the implementation does not keep references after return.
-  virtual Status transfer(std::span<const std::uint8_t> tx, std::span<std::uint8_t> rx) noexcept = 0;
+  virtual Status transfer(std::span<const std::uint8_t> tx,
+                          std::span<std::uint8_t> rx) noexcept = 0;
 
  protected:
   ~SpiBus() = default;

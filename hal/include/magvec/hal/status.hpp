@@ -23,18 +23,30 @@ enum class Status : std::uint8_t {
 
 constexpr const char* to_string(Status s) noexcept {
   switch (s) {
-    case Status::kOk: return "ok";
-    case Status::kTimeout: return "timeout";
-    case Status::kNoData: return "no data";
-    case Status::kInvalidArgument: return "invalid argument";
-    case Status::kBusError: return "bus error";
-    case Status::kCrcError: return "crc error";
-    case Status::kMalformed: return "malformed";
-    case Status::kOverflow: return "overflow";
-    case Status::kNotReady: return "not ready";
-    case Status::kPowerLoss: return "power loss";
-    case Status::kCorrupt: return "corrupt";
-    case Status::kNotFound: return "not found";
+    case Status::kOk:
+      return "ok";
+    case Status::kTimeout:
+      return "timeout";
+    case Status::kNoData:
+      return "no data";
+    case Status::kInvalidArgument:
+      return "invalid argument";
+    case Status::kBusError:
+      return "bus error";
+    case Status::kCrcError:
+      return "crc error";
+    case Status::kMalformed:
+      return "malformed";
+    case Status::kOverflow:
+      return "overflow";
+    case Status::kNotReady:
+      return "not ready";
+    case Status::kPowerLoss:
+      return "power loss";
+    case Status::kCorrupt:
+      return "corrupt";
+    case Status::kNotFound:
+      return "not found";
   }
   return "unknown";
 }

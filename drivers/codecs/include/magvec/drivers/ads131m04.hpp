@@ -1,5 +1,6 @@
 // TI ADS131M04 4-channel, simultaneous-sampling 24-bit delta-sigma ADC: SPI frame codec and the
-// counts -> volts conversion. Used as the front end of a 3-axis analogue fluxgate (3 of 4 channels).
+// counts -> volts conversion. Used as the front end of a 3-axis analogue fluxgate (3 of 4
+// channels).
 //
 // Source of the format: TI ADS131M04 datasheet (SBAS788), section "SPI Communication Frames",
 // Table "Command Definitions" and the register map (STATUS 01h, MODE 02h, GAIN1 04h), as
@@ -130,7 +131,7 @@ bool build_command_frame(std::uint16_t command, std::span<const std::uint16_t> d
                          bool with_input_crc, Frame& out) noexcept;
 
 struct Response {
-  std::uint16_t response{0};                 // response/status word
+  std::uint16_t response{0};  // response/status word
   std::array<std::int32_t, kChannels> codes{};
   std::uint16_t crc_received{0};
   std::uint16_t crc_computed{0};

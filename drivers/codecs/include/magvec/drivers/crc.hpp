@@ -26,7 +26,8 @@ constexpr std::uint16_t crc16_ccitt(std::span<const std::uint8_t> data,
   return crc;
 }
 
-constexpr std::uint32_t crc32_update(std::uint32_t state, std::span<const std::uint8_t> data) noexcept {
+constexpr std::uint32_t crc32_update(std::uint32_t state,
+                                     std::span<const std::uint8_t> data) noexcept {
   for (const std::uint8_t byte : data) {
     state ^= byte;
     for (int bit = 0; bit < 8; ++bit) {
@@ -36,14 +37,17 @@ constexpr std::uint32_t crc32_update(std::uint32_t state, std::span<const std::u
   return state;
 }
 inline constexpr std::uint32_t kCrc32Init = 0xFFFFFFFFu;
-constexpr std::uint32_t crc32_final(std::uint32_t state) noexcept { return state ^ 0xFFFFFFFFu; }
+constexpr std::uint32_t crc32_final(std::uint32_t state) noexcept {
+  return state ^ 0xFFFFFFFFu;
+}
 constexpr std::uint32_t crc32(std::span<const std::uint8_t> data) noexcept {
   return crc32_final(crc32_update(kCrc32Init, data));
 }
 
 constexpr std::uint8_t xor_checksum(std::span<const std::uint8_t> data) noexcept {
   std::uint8_t x = 0;
-  for (const std::uint8_t byte : data) x = static_cast<std::uint8_t>(x ^ byte);
+  for (const std::uint8_t byte : data)
+    x = static_cast<std::uint8_t>(x ^ byte);
   return x;
 }
 

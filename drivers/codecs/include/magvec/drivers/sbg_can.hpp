@@ -72,7 +72,7 @@ struct DecoderConfig {
 struct RawState {
   std::uint32_t ekf_time_us{0};
   std::array<std::int16_t, 4> quat{};
-  std::array<std::int16_t, 3> euler{};   // roll, pitch, yaw
+  std::array<std::int16_t, 3> euler{};  // roll, pitch, yaw
   std::array<std::uint16_t, 3> accuracy{};
   std::uint32_t solution_status{0};
   std::uint32_t status01_time_us{0};
@@ -81,11 +81,11 @@ struct RawState {
 };
 
 enum class FeedResult : std::uint8_t {
-  kIgnored,        // not one of the configured IDs
-  kConsumed,       // valid frame, state updated, no new sample
-  kSample,         // a new attitude sample is available via sample()
-  kMalformed,      // wrong length / extended ID / out-of-range content (counted)
-  kMissingTime,    // attitude frame without a preceding EKF_INFO (counted)
+  kIgnored,      // not one of the configured IDs
+  kConsumed,     // valid frame, state updated, no new sample
+  kSample,       // a new attitude sample is available via sample()
+  kMalformed,    // wrong length / extended ID / out-of-range content (counted)
+  kMissingTime,  // attitude frame without a preceding EKF_INFO (counted)
 };
 
 class CanDecoder {
@@ -120,7 +120,8 @@ hal::CanFrame encode_status_01(std::uint32_t time_us, std::uint16_t general_stat
 hal::CanFrame encode_status_03(std::uint32_t solution_status, std::uint16_t heave_status,
                                const CanIds& ids = {}) noexcept;
 hal::CanFrame encode_ekf_info(std::uint32_t time_us, const CanIds& ids = {}) noexcept;
-hal::CanFrame encode_ekf_quat(const std::array<double, 4>& q_ned_frd, const CanIds& ids = {}) noexcept;
+hal::CanFrame encode_ekf_quat(const std::array<double, 4>& q_ned_frd,
+                              const CanIds& ids = {}) noexcept;
 hal::CanFrame encode_ekf_euler(double roll_rad, double pitch_rad, double yaw_rad,
                                const CanIds& ids = {}) noexcept;
 hal::CanFrame encode_orientation_acc(double roll_acc_rad, double pitch_acc_rad, double yaw_acc_rad,

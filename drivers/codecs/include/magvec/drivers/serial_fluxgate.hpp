@@ -1,14 +1,16 @@
 // Serial fluxgate decoders: incremental (byte by byte), bounded memory, no heap, resynchronising
 // after garbage, counting every rejection in hal::MagCounters.
 //
-// 1. AsciiLineDecoder: a configurable NMEA-like line format, e.g. "$MAG,12345.6,-2345.1,40000.0*hh\r\n"
+// 1. AsciiLineDecoder: a configurable NMEA-like line format, e.g.
+// "$MAG,12345.6,-2345.1,40000.0*hh\r\n"
 //      [start_char] field {separator field} ['*' hh] ['\r'] '\n'
 //    - start_char (default '$', 0 = none) opens a line; a start_char inside a line restarts it
 //      (the partial line is counted as malformed), so a line that follows garbage is recovered.
 //      Without a start_char, garbage is joined to the next line, which is then lost (documented
 //      limitation of start-less formats).
 //    - hh: NMEA 0183 checksum, XOR of every byte after start_char (or from the line start) up to
-//      '*', two hex digits (either case). ChecksumMode decides whether it is optional/required/absent.
+//      '*', two hex digits (either case). ChecksumMode decides whether it is
+//      optional/required/absent.
 //    - fields: `tag` (if non-empty) must equal field 0; x, y, z at configurable field indices;
 //      decimal numbers (sign, digits, '.', exponent); value_nT = number * scale.
 //    - at most kMaxLine bytes per line; longer lines are counted as overflow and skipped.
@@ -41,18 +43,18 @@ namespace magvec::drivers {
 enum class ChecksumMode : std::uint8_t { kNone, kOptional, kRequired };
 
 struct AsciiLineConfig {
-  char start_char{'$'};                          // 0 = lines start after the previous '\n'
+  char start_char{'$'};  // 0 = lines start after the previous '\n'
   char separator{','};
-  std::array<char, 12> tag{'M', 'A', 'G'};       // zero-terminated; empty = no tag check
+  std::array<char, 12> tag{'M', 'A', 'G'};  // zero-terminated; empty = no tag check
   std::array<std::uint8_t, 3> field_of_axis{1, 2, 3};
-  std::uint8_t field_count{4};                   // exact number of fields; 0 = at least max index + 1
-  double scale{1.0};                             // nT per unit of the numbers in the line
+  std::uint8_t field_count{4};  // exact number of fields; 0 = at least max index + 1
+  double scale{1.0};            // nT per unit of the numbers in the line
   ChecksumMode checksum{ChecksumMode::kOptional};
 };
 
 class AsciiLineDecoder {
  public:
-  static constexpr std::size_t kMaxLine = 96;   // bytes between start and '\n' (exclusive)
+  static constexpr std::size_t kMaxLine = 96;  // bytes between start and '\n' (exclusive)
   static constexpr std::size_t kMaxFields = 12;
 
   explicit AsciiLineDecoder(const AsciiLineConfig& config) noexcept : config_(config) {}
@@ -64,10 +66,12 @@ class AsciiLineDecoder {
 
   // Feeds a block; calls on_sample(const hal::MagnetometerSample&) for each valid line.
   template <typename OnSample>
-  void feed(std::span<const std::uint8_t> bytes, std::uint64_t t_us, OnSample&& on_sample) noexcept {
+  void feed(std::span<const std::uint8_t> bytes, std::uint64_t t_us,
+            OnSample&& on_sample) noexcept {
     hal::MagnetometerSample s;
     for (const std::uint8_t b : bytes) {
-      if (push(b, t_us, s) == hal::Status::kOk) on_sample(static_cast<const hal::MagnetometerSample&>(s));
+      if (push(b, t_us, s) == hal::Status::kOk)
+        on_sample(static_cast<const hal::MagnetometerSample&>(s));
     }
   }
 
@@ -111,31 +115,35 @@ class Hmr2300BinaryDecoder {
   bool pending(hal::MagnetometerSample& out) noexcept;
 
   template <typename OnSample>
-  void feed(std::span<const std::uint8_t> bytes, std::uint64_t t_us, OnSample&& on_sample) noexcept {
+  void feed(std::span<const std::uint8_t> bytes, std::uint64_t t_us,
+            OnSample&& on_sample) noexcept {
     hal::MagnetometerSample s;
     for (const std::uint8_t b : bytes) {
       if (push(b, t_us, s) == hal::Status::kOk) {
         on_sample(static_cast<const hal::MagnetometerSample&>(s));
-        while (pending(s)) on_sample(static_cast<const hal::MagnetometerSample&>(s));
+        while (pending(s))
+          on_sample(static_cast<const hal::MagnetometerSample&>(s));
       }
     }
   }
 
   bool locked() const noexcept { return locked_; }
   const hal::MagCounters& counters() const noexcept { return counters_; }
-  static std::array<std::uint8_t, kRecordBytes> encode(const std::array<std::int16_t, 3>& counts) noexcept;
+  static std::array<std::uint8_t, kRecordBytes> encode(
+      const std::array<std::int16_t, 3>& counts) noexcept;
 
  private:
   static constexpr std::size_t kHistory = 2 * kRecordBytes;
-  std::uint8_t at(std::uint64_t pos) const noexcept { return history_[pos % kHistory]; }
+  std::uint8_t at(std::uint64_t pos) const noexcept { return history_[static_cast<std::size_t>(pos % kHistory)]; }
   bool plausible(std::uint64_t end_pos) const noexcept;  // record ending at end_pos (its 0Dh)
-  void make_sample(std::uint64_t end_pos, std::uint64_t t_us, hal::MagnetometerSample& out) noexcept;
+  void make_sample(std::uint64_t end_pos, std::uint64_t t_us,
+                   hal::MagnetometerSample& out) noexcept;
 
   Hmr2300Config config_;
   hal::MagCounters counters_{};
   std::array<std::uint8_t, kHistory> history_{};
-  std::uint64_t count_{0};          // bytes consumed so far; the current byte is at count_ - 1
-  std::uint64_t expected_end_{0};   // while locked: position of the next terminator
+  std::uint64_t count_{0};         // bytes consumed so far; the current byte is at count_ - 1
+  std::uint64_t expected_end_{0};  // while locked: position of the next terminator
   std::uint64_t last_emitted_end_{0};
   bool any_emitted_{false};
   bool locked_{false};
@@ -158,14 +166,16 @@ class SerialFluxgate final : public hal::MagnetometerSource {
   hal::Status read(hal::MagnetometerSample& out, std::uint32_t timeout_us) noexcept override {
     // Bounded work per call: at most kMaxChunks reads (the first may wait, the rest poll).
     for (int attempt = 0; attempt < kMaxChunks; ++attempt) {
-      if (take_from_buffer(out)) return hal::Status::kOk;
+      if (take_from_buffer(out))
+        return hal::Status::kOk;
       std::size_t n = 0;
       const hal::Status s = port_.read(buf_, n, attempt == 0 ? timeout_us : 0);
       if (s != hal::Status::kOk && s != hal::Status::kTimeout && s != hal::Status::kNoData) {
         ++bus_errors_;
         return s;
       }
-      if (n == 0) return attempt == 0 ? hal::Status::kTimeout : hal::Status::kNoData;
+      if (n == 0)
+        return attempt == 0 ? hal::Status::kTimeout : hal::Status::kNoData;
       const std::uint64_t now = clock_.now_us();
       rx_t_us_ = now > latency_us_ ? now - latency_us_ : 0;
       pos_ = 0;
@@ -183,10 +193,12 @@ class SerialFluxgate final : public hal::MagnetometerSource {
  private:
   bool take_from_buffer(hal::MagnetometerSample& out) noexcept {
     if constexpr (requires(Decoder d, hal::MagnetometerSample s) { d.pending(s); }) {
-      if (decoder_.pending(out)) return true;
+      if (decoder_.pending(out))
+        return true;
     }
     while (pos_ < len_) {
-      if (decoder_.push(buf_[pos_++], rx_t_us_, out) == hal::Status::kOk) return true;
+      if (decoder_.push(buf_[pos_++], rx_t_us_, out) == hal::Status::kOk)
+        return true;
     }
     return false;
   }

@@ -26,8 +26,8 @@
 namespace magvec::drivers {
 
 struct ParamStoreLayout {
-  std::size_t base{0};        // offset of slot 0 (sector aligned)
-  std::size_t slot_size{0};   // bytes per slot (multiple of the sector size); slot 1 follows slot 0
+  std::size_t base{0};       // offset of slot 0 (sector aligned)
+  std::size_t slot_size{0};  // bytes per slot (multiple of the sector size); slot 1 follows slot 0
 };
 
 class FlashParamStore final : public hal::ParamStore {

@@ -28,12 +28,12 @@
 namespace magvec::core {
 
 enum class AttitudeInsert : std::uint8_t {
-  kAppended,     // newest so far
-  kReordered,    // inserted before the newest
-  kDuplicate,    // same t_us as a retained sample: rejected
-  kTooOld,       // older than everything retained while full: rejected
-  kInvalid,      // non-finite or non-unit quaternion: rejected
-  kClockReset,   // large backwards jump: buffer cleared, sample kept
+  kAppended,    // newest so far
+  kReordered,   // inserted before the newest
+  kDuplicate,   // same t_us as a retained sample: rejected
+  kTooOld,      // older than everything retained while full: rejected
+  kInvalid,     // non-finite or non-unit quaternion: rejected
+  kClockReset,  // large backwards jump: buffer cleared, sample kept
 };
 
 enum class AttitudeQueryStatus : std::uint8_t {
@@ -52,7 +52,7 @@ constexpr bool attitude_usable(AttitudeQueryStatus s) noexcept {
 enum class ExtrapolationMode : std::uint8_t { kHold, kConstantRate };
 
 struct AttitudeBufferConfig {
-  std::uint64_t max_gap_us{50'000};           // e.g. 5 INS periods at 100 Hz
+  std::uint64_t max_gap_us{50'000};  // e.g. 5 INS periods at 100 Hz
   std::uint64_t max_extrapolation_us{20'000};
   std::uint64_t max_backjump_us{1'000'000};
   ExtrapolationMode extrapolation{ExtrapolationMode::kHold};
@@ -79,7 +79,8 @@ struct AttitudeQuery {
 template <typename Scalar>
 Quat<Scalar> slerp_unit(const Quat<Scalar>& q0, const Quat<Scalar>& q1, Scalar f) noexcept {
   Quat<Scalar> d = q0.conjugate() * q1;
-  if (d.w() < Scalar(0)) d.coeffs() = -d.coeffs();
+  if (d.w() < Scalar(0))
+    d.coeffs() = -d.coeffs();
   const Scalar vnorm = d.vec().norm();
   const Scalar angle = Scalar(2) * std::atan2(vnorm, d.w());
   Quat<Scalar> step;
@@ -120,7 +121,8 @@ class AttitudeBuffer {
     const std::uint64_t newest = time_at(size_ - 1);
     if (t_us > newest) {
       // Keep the hemisphere continuous so that stored neighbours are on the same side.
-      if (q.dot(quat_at(size_ - 1)) < Scalar(0)) q.coeffs() = -q.coeffs();
+      if (q.dot(quat_at(size_ - 1)) < Scalar(0))
+        q.coeffs() = -q.coeffs();
       push_back(t_us, q);
       ++counters_.appended;
       return AttitudeInsert::kAppended;
@@ -149,8 +151,10 @@ class AttitudeBuffer {
       ++counters_.overwritten;
     }
     // Shift [pos, size_) up by one.
-    for (std::size_t i = size_; i > pos; --i) entries_[phys(i)] = entries_[phys(i - 1)];
-    if (q.dot(entries_[phys(pos + 1)].q) < Scalar(0)) q.coeffs() = -q.coeffs();
+    for (std::size_t i = size_; i > pos; --i)
+      entries_[phys(i)] = entries_[phys(i - 1)];
+    if (q.dot(entries_[phys(pos + 1)].q) < Scalar(0))
+      q.coeffs() = -q.coeffs();
     entries_[phys(pos)] = Entry{t_us, q};
     ++size_;
     ++counters_.reordered;
@@ -159,7 +163,8 @@ class AttitudeBuffer {
 
   AttitudeQuery<Scalar> at(std::uint64_t t_us) const noexcept {
     AttitudeQuery<Scalar> r;
-    if (size_ == 0) return r;
+    if (size_ == 0)
+      return r;
     const std::uint64_t oldest = time_at(0);
     const std::uint64_t newest = time_at(size_ - 1);
     if (t_us < oldest) {
@@ -202,7 +207,8 @@ class AttitudeBuffer {
       r.status = AttitudeQueryStatus::kGap;
       return r;
     }
-    const Scalar f = static_cast<Scalar>(static_cast<double>(t_us - t0) / static_cast<double>(r.gap_us));
+    const Scalar f =
+        static_cast<Scalar>(static_cast<double>(t_us - t0) / static_cast<double>(r.gap_us));
     r.status = AttitudeQueryStatus::kInterpolated;
     r.q_nb = slerp_unit(quat_at(hi - 1), quat_at(hi), f);
     return r;
@@ -226,7 +232,9 @@ class AttitudeBuffer {
   };
   std::size_t phys(std::size_t logical) const noexcept { return (head_ + logical) % Capacity; }
   std::uint64_t time_at(std::size_t logical) const noexcept { return entries_[phys(logical)].t_us; }
-  const Quat<Scalar>& quat_at(std::size_t logical) const noexcept { return entries_[phys(logical)].q; }
+  const Quat<Scalar>& quat_at(std::size_t logical) const noexcept {
+    return entries_[phys(logical)].q;
+  }
   std::size_t lower_bound(std::uint64_t t_us) const noexcept {
     std::size_t lo = 0, hi = size_;
     while (lo < hi) {

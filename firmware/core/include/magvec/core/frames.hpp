@@ -66,7 +66,8 @@ LiEuler<Scalar> li_from_r_bn(const Mat3<Scalar>& r) noexcept {
   return {atan2(-r(1, 0), r(1, 1)), asin(sb), atan2(-r(0, 2), r(2, 2))};
 }
 
-// ENU <-> NED and RFU <-> FRD are the same signed permutation: swap the first two axes, negate the third.
+// ENU <-> NED and RFU <-> FRD are the same signed permutation: swap the first two axes, negate the
+// third.
 template <typename Scalar>
 Mat3<Scalar> enu_ned_swap() noexcept {
   Mat3<Scalar> p;
@@ -101,7 +102,8 @@ template <typename Scalar>
 Quat<Scalar> quat_from_r_bn(const Mat3<Scalar>& r_bn) noexcept {
   Quat<Scalar> q(Mat3<Scalar>(r_bn.transpose()));
   q.normalize();
-  if (q.w() < Scalar(0)) q.coeffs() = -q.coeffs();
+  if (q.w() < Scalar(0))
+    q.coeffs() = -q.coeffs();
   return q;
 }
 
@@ -110,8 +112,10 @@ template <typename Scalar>
 Scalar wrap_pi(Scalar a) noexcept {
   const Scalar two_pi = Scalar(2) * kPi<Scalar>;
   a = std::fmod(a, two_pi);
-  if (a <= -kPi<Scalar>) a += two_pi;
-  if (a > kPi<Scalar>) a -= two_pi;
+  if (a <= -kPi<Scalar>)
+    a += two_pi;
+  if (a > kPi<Scalar>)
+    a -= two_pi;
   return a;
 }
 

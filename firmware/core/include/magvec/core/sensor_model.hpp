@@ -2,8 +2,8 @@
 //   m = A Rm R_bn h_n + o,   stored as W = A^-1, o, Rm (unit quaternion, INS body -> sensor frame).
 // Li et al. 2023 eq. (4)-(7): A = Ks Ko, o = Kof, Rm = Ry(gm) Rx(bm) Rz(am); G decomposed per
 // ERRATA 000-1 (ks_i = sqrt((G^-1)_ii), not the printed 1/sqrt(G_ii)).
-// Ge et al. 2017 eq. (13)-(14): Hm = C Hi + b with Hi in the carrier (INS body) frame: C^-1 = Rm^T W.
-// Sine-fitting paper eq. (1): m = K B + B0, K lower triangular, B in the fixture frame.
+// Ge et al. 2017 eq. (13)-(14): Hm = C Hi + b with Hi in the carrier (INS body) frame: C^-1 = Rm^T
+// W. Sine-fitting paper eq. (1): m = K B + B0, K lower triangular, B in the fixture frame.
 #pragma once
 
 #include <Eigen/Cholesky>
@@ -17,8 +17,8 @@ namespace magvec::core {
 
 template <typename Scalar>
 struct SensorModel {
-  Mat3<Scalar> w = Mat3<Scalar>::Identity();  // A^-1: raw (offset-free) -> orthogonal sensor frame
-  Vec3<Scalar> o = Vec3<Scalar>::Zero();      // offset [nT]
+  Mat3<Scalar> w = Mat3<Scalar>::Identity();   // A^-1: raw (offset-free) -> orthogonal sensor frame
+  Vec3<Scalar> o = Vec3<Scalar>::Zero();       // offset [nT]
   Quat<Scalar> rm = Quat<Scalar>::Identity();  // misalignment: h_s = Rm h_b
 
   Mat3<Scalar> rm_matrix() const noexcept { return rm.toRotationMatrix(); }
@@ -52,10 +52,10 @@ enum class ConversionStatus : std::uint8_t {
 // Li et al. 2023
 template <typename Scalar>
 struct LiParams {
-  Vec3<Scalar> ks = Vec3<Scalar>::Ones();         // scale factors Ksx, Ksy, Ksz
-  Vec3<Scalar> o_rad = Vec3<Scalar>::Zero();      // non-orthogonality O1, O2, O3
-  Vec3<Scalar> kof = Vec3<Scalar>::Zero();        // offset Kof [nT]
-  Vec3<Scalar> rm_rad = Vec3<Scalar>::Zero();     // misalignment alpha_m, beta_m, gamma_m
+  Vec3<Scalar> ks = Vec3<Scalar>::Ones();      // scale factors Ksx, Ksy, Ksz
+  Vec3<Scalar> o_rad = Vec3<Scalar>::Zero();   // non-orthogonality O1, O2, O3
+  Vec3<Scalar> kof = Vec3<Scalar>::Zero();     // offset Kof [nT]
+  Vec3<Scalar> rm_rad = Vec3<Scalar>::Zero();  // misalignment alpha_m, beta_m, gamma_m
 };
 
 // Eq. (5): rows are the unit sensing directions of the magnetometer axes.
@@ -64,7 +64,7 @@ Mat3<Scalar> li_ko(const Vec3<Scalar>& o_rad) noexcept {
   using std::cos;
   using std::sin;
   Mat3<Scalar> ko;
-  ko << 1, 0, 0,                                                                  //
+  ko << 1, 0, 0,                                                                    //
       cos(o_rad(1)) * sin(o_rad(2)), cos(o_rad(1)) * cos(o_rad(2)), sin(o_rad(1)),  //
       sin(o_rad(0)), 0, cos(o_rad(0));
   return ko;
@@ -88,8 +88,8 @@ SensorModel<Scalar> from_li(const LiParams<Scalar>& p) noexcept {
 
 // Ks and O from G^-1 = A A^T (ERRATA 000-1); on success also returns Ks Ko in *ksko.
 template <typename Scalar>
-ConversionStatus li_scale_and_angles(const Mat3<Scalar>& g_inv, Vec3<Scalar>* ks, Vec3<Scalar>* o_rad,
-                                     Mat3<Scalar>* ksko) noexcept {
+ConversionStatus li_scale_and_angles(const Mat3<Scalar>& g_inv, Vec3<Scalar>* ks,
+                                     Vec3<Scalar>* o_rad, Mat3<Scalar>* ksko) noexcept {
   using std::asin;
   using std::atan2;
   using std::sqrt;
@@ -100,13 +100,16 @@ ConversionStatus li_scale_and_angles(const Mat3<Scalar>& g_inv, Vec3<Scalar>* ks
   const Scalar c12 = g_inv(0, 1) / (k(0) * k(1));
   const Scalar c13 = g_inv(0, 2) / (k(0) * k(2));
   const Scalar c23 = g_inv(1, 2) / (k(1) * k(2));
-  if (!(std::abs(c13) < Scalar(1))) return ConversionStatus::kNotPositiveDefinite;
+  if (!(std::abs(c13) < Scalar(1)))
+    return ConversionStatus::kNotPositiveDefinite;
   const Scalar o1 = asin(c13);
   const Scalar s2 = (c23 - c12 * c13) / std::cos(o1);
-  if (!(std::abs(s2) < Scalar(1))) return ConversionStatus::kNotPositiveDefinite;
+  if (!(std::abs(s2) < Scalar(1)))
+    return ConversionStatus::kNotPositiveDefinite;
   const Scalar o2 = asin(s2);
   const Scalar s3 = c12 / std::cos(o2);
-  if (!(std::abs(s3) < Scalar(1))) return ConversionStatus::kNotPositiveDefinite;
+  if (!(std::abs(s3) < Scalar(1)))
+    return ConversionStatus::kNotPositiveDefinite;
   // Row y of Ko has unit norm, so cos O3 = sqrt(1 - s3^2) > 0 (|O3| < 90 deg).
   const Scalar o3 = atan2(s3, sqrt(Scalar(1) - s3 * s3));
   *ks = k;
@@ -121,10 +124,13 @@ ConversionStatus to_li(const SensorModel<Scalar>& m, LiParams<Scalar>* out) noex
   const Mat3<Scalar> a_total = m.a() * m.rm_matrix();
   Mat3<Scalar> ksko;
   LiParams<Scalar> p;
-  const ConversionStatus st = li_scale_and_angles<Scalar>(a_total * a_total.transpose(), &p.ks, &p.o_rad, &ksko);
-  if (st != ConversionStatus::kOk) return st;
+  const ConversionStatus st =
+      li_scale_and_angles<Scalar>(a_total * a_total.transpose(), &p.ks, &p.o_rad, &ksko);
+  if (st != ConversionStatus::kOk)
+    return st;
   const Mat3<Scalar> q = ksko.inverse() * a_total;
-  if (q.determinant() < 0) return ConversionStatus::kReflection;
+  if (q.determinant() < 0)
+    return ConversionStatus::kReflection;
   const LiEuler<Scalar> e = li_from_r_bn<Scalar>(q);
   p.rm_rad = Vec3<Scalar>(e.alpha, e.beta, e.gamma);
   p.kof = m.o;
@@ -138,7 +144,8 @@ template <typename Scalar>
 ConversionStatus canonicalize_li(const SensorModel<Scalar>& m, SensorModel<Scalar>* out) noexcept {
   LiParams<Scalar> p;
   const ConversionStatus st = to_li(m, &p);
-  if (st == ConversionStatus::kOk) *out = from_li(p);
+  if (st == ConversionStatus::kOk)
+    *out = from_li(p);
   return st;
 }
 
@@ -166,7 +173,7 @@ GeParams<Scalar> to_ge(const SensorModel<Scalar>& m) noexcept {
 // Sine-fitting turntable paper
 template <typename Scalar>
 struct SineParams {
-  Vec3<Scalar> k = Vec3<Scalar>::Ones();  // kx, ky, kz
+  Vec3<Scalar> k = Vec3<Scalar>::Ones();   // kx, ky, kz
   Scalar alpha_rad{0};                     // Ym tilt from Y inside the XY plane
   Scalar beta_rad{0};                      // azimuth of Zm's projection on XY, from X
   Scalar gamma_rad{0};                     // angle between Zm and Z
@@ -178,8 +185,8 @@ Mat3<Scalar> sine_k(const SineParams<Scalar>& p) noexcept {
   using std::cos;
   using std::sin;
   Mat3<Scalar> k;
-  k << p.k(0), 0, 0,                                                  //
-      p.k(1) * sin(p.alpha_rad), p.k(1) * cos(p.alpha_rad), 0,        //
+  k << p.k(0), 0, 0,                                            //
+      p.k(1) * sin(p.alpha_rad), p.k(1) * cos(p.alpha_rad), 0,  //
       p.k(2) * cos(p.beta_rad) * sin(p.gamma_rad), p.k(2) * sin(p.beta_rad) * sin(p.gamma_rad),
       p.k(2) * cos(p.gamma_rad);
   return k;
@@ -202,10 +209,12 @@ ConversionStatus to_sine(const SensorModel<Scalar>& m, SineParams<Scalar>* out,
   using std::hypot;
   const Mat3<Scalar> a_total = m.a() * m.rm_matrix();
   const Eigen::LLT<Mat3<Scalar>> llt(a_total * a_total.transpose());
-  if (llt.info() != Eigen::Success || !a_total.allFinite()) return ConversionStatus::kNotPositiveDefinite;
+  if (llt.info() != Eigen::Success || !a_total.allFinite())
+    return ConversionStatus::kNotPositiveDefinite;
   const Mat3<Scalar> k = llt.matrixL();
   const Mat3<Scalar> q = k.inverse() * a_total;
-  if (q.determinant() < 0) return ConversionStatus::kReflection;
+  if (q.determinant() < 0)
+    return ConversionStatus::kReflection;
   SineParams<Scalar> p;
   p.k = Vec3<Scalar>(k(0, 0), k.row(1).norm(), k.row(2).norm());
   p.alpha_rad = atan2(k(1, 0), k(1, 1));
@@ -213,7 +222,8 @@ ConversionStatus to_sine(const SensorModel<Scalar>& m, SineParams<Scalar>* out,
   p.beta_rad = atan2(k(2, 1), k(2, 0));
   p.b0 = m.o;
   *out = p;
-  if (fixture_rotation != nullptr) *fixture_rotation = q;
+  if (fixture_rotation != nullptr)
+    *fixture_rotation = q;
   return ConversionStatus::kOk;
 }
 

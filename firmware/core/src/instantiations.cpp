@@ -1,11 +1,16 @@
 // Explicit instantiation of the core templates for both scalar types, so that every template is
 // compiled (and warning-checked) on the host and for the MCU targets.
+#include "magvec/core/attitude_buffer.hpp"
 #include "magvec/core/compensator.hpp"
 #include "magvec/core/frames.hpp"
 #include "magvec/core/sensor_model.hpp"
 
 namespace magvec::core {
 
+template class AttitudeBuffer<float, 64>;
+template class AttitudeBuffer<double, 64>;
+template Quat<float> slerp_unit(const Quat<float>&, const Quat<float>&, float) noexcept;
+template Quat<double> slerp_unit(const Quat<double>&, const Quat<double>&, double) noexcept;
 template struct SensorModel<float>;
 template struct SensorModel<double>;
 template class Compensator<float>;

@@ -1,0 +1,76 @@
+// Triaxial analogue fluxgate read through a TI ADS131M04 (frame format: ads131m04.hpp), with the
+// ADC's DRDY output on a GPIO line. Implements hal::MagnetometerSource.
+// Conversion (DESIGN.md "Drivers"): B_axis[nT] = code / 2^23 * (VREF / gain) * k_axis[nT/V], with
+// k_axis the fluxgate electronics' transfer coefficient (e.g. 10 uT/V = 1e4 nT/V).
+// Health checks per sample: output CRC, WLENGTH, device RESET bit, DRDY bits of the used channels,
+// saturation (code at +/- full scale), stuck channel (the same code N times in a row).
+#pragma once
+
+#include <array>
+#include <cstdint>
+
+#include "magvec/drivers/ads131m04.hpp"
+#include "magvec/hal/data_ready_line.hpp"
+#include "magvec/hal/magnetometer_source.hpp"
+#include "magvec/hal/spi_bus.hpp"
+
+namespace magvec::drivers {
+
+struct Ads131FluxgateConfig {
+  std::array<std::uint8_t, 3> channel_of_axis{0, 1, 2};  // ADC channel (0..3) of sensor x, y, z
+  std::array<double, 3> nT_per_volt{1e4, 1e4, 1e4};      // fluxgate transfer coefficient per axis
+  std::array<std::uint8_t, 4> gain_code{0, 0, 0, 0};     // PGAGAINn codes (gain = 2^code)
+  std::uint32_t stuck_count{64};  // identical consecutive codes that flag a stuck channel; 0 = off
+};
+
+// Stateless-per-frame conversion plus the per-channel stuck detector, separated from the transport
+// so that it is testable byte by byte.
+class Ads131FrameDecoder {
+ public:
+  explicit Ads131FrameDecoder(const Ads131FluxgateConfig& config) noexcept : config_(config) {}
+
+  // Decodes one output frame taken after a NULL command. Returns kOk (sample filled, flags may be
+  // set), kCrcError or kMalformed (WLENGTH is not 24 bit). Counters updated either way.
+  hal::Status decode(std::span<const std::uint8_t, ads131::kFrameBytes> frame, std::uint64_t t_us,
+                     hal::MagnetometerSample& out) noexcept;
+
+  const hal::MagCounters& counters() const noexcept { return counters_; }
+  hal::MagCounters& counters() noexcept { return counters_; }
+  const Ads131FluxgateConfig& config() const noexcept { return config_; }
+  void reset_stuck_detector() noexcept;
+
+ private:
+  Ads131FluxgateConfig config_;
+  hal::MagCounters counters_{};
+  std::array<std::int32_t, 3> last_code_{};
+  std::array<std::uint32_t, 3> repeat_{};
+  std::uint32_t sequence_{0};
+};
+
+class Ads131Fluxgate final : public hal::MagnetometerSource {
+ public:
+  Ads131Fluxgate(hal::SpiBus& spi, hal::DataReadyLine& drdy,
+                 const Ads131FluxgateConfig& config) noexcept
+      : spi_(spi), drdy_(drdy), decoder_(config) {}
+
+  // RESET, check the reset acknowledge (FF24h), write GAIN1, check the WREG acknowledge.
+  // kNotReady if the device does not answer as expected, kBusError on an SPI failure.
+  hal::Status init() noexcept;
+
+  // Waits for a falling DRDY edge (up to timeout_us), clocks one NULL frame and decodes it.
+  // The sample time is the DRDY edge time (the conversion instant, not the SPI read time).
+  hal::Status read(hal::MagnetometerSample& out, std::uint32_t timeout_us) noexcept override;
+  const hal::MagCounters& counters() const noexcept override { return decoder_.counters(); }
+  bool initialised() const noexcept { return initialised_; }
+
+ private:
+  hal::Status exchange(std::uint16_t command, std::span<const std::uint16_t> data,
+                       ads131::Response& response, bool& crc_ok) noexcept;
+
+  hal::SpiBus& spi_;
+  hal::DataReadyLine& drdy_;
+  Ads131FrameDecoder decoder_;
+  bool initialised_{false};
+};
+
+}  // namespace magvec::drivers

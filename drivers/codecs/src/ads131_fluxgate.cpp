@@ -1,0 +1,124 @@
+// ADS131M04 fluxgate front end; see ads131_fluxgate.hpp.
+#include "magvec/drivers/ads131_fluxgate.hpp"
+
+namespace magvec::drivers {
+
+using namespace ads131;
+
+void Ads131FrameDecoder::reset_stuck_detector() noexcept {
+  last_code_.fill(0);
+  repeat_.fill(0);
+}
+
+hal::Status Ads131FrameDecoder::decode(std::span<const std::uint8_t, kFrameBytes> frame,
+                                       std::uint64_t t_us, hal::MagnetometerSample& out) noexcept {
+  Response r;
+  if (parse_response_frame(frame, r) != ParseResult::kOk) {
+    ++counters_.crc_errors;
+    return hal::Status::kCrcError;
+  }
+  // The response to NULL is the STATUS register: a frame in another word length is garbage to us.
+  if ((r.response & kStatusWlengthMask) != kStatusWlength24) {
+    ++counters_.malformed;
+    return hal::Status::kMalformed;
+  }
+  std::uint32_t flags = 0;
+  if ((r.response & kStatusReset) != 0)
+    flags |= hal::kMagDeviceReset;
+  for (std::size_t axis = 0; axis < 3; ++axis) {
+    const std::uint8_t ch = config_.channel_of_axis[axis] & 3u;
+    const std::int32_t code = r.codes[ch];
+    if ((r.response & (1u << ch)) == 0)
+      flags |= hal::kMagNotFresh;
+    if (code == kCodePositiveFullScale || code == kCodeNegativeFullScale) {
+      flags |= hal::kMagSaturated;
+    }
+    if (code == last_code_[axis]) {
+      if (repeat_[axis] < 0xFFFFFFFFu)
+        ++repeat_[axis];
+    } else {
+      last_code_[axis] = code;
+      repeat_[axis] = 1;
+    }
+    if (config_.stuck_count != 0 && repeat_[axis] >= config_.stuck_count) {
+      flags |= hal::kMagStuck;
+    }
+    out.raw[axis] = code;
+    out.m_nT[axis] = code_to_volts(code, config_.gain_code[ch]) * config_.nT_per_volt[axis];
+  }
+  out.t_us = t_us;
+  out.flags = flags;
+  out.sequence = sequence_++;
+  ++counters_.samples;
+  if ((flags & hal::kMagSaturated) != 0)
+    ++counters_.saturated;
+  if ((flags & hal::kMagStuck) != 0)
+    ++counters_.stuck;
+  return hal::Status::kOk;
+}
+
+hal::Status Ads131Fluxgate::exchange(std::uint16_t command, std::span<const std::uint16_t> data,
+                                     Response& response, bool& crc_ok) noexcept {
+  Frame tx{};
+  Frame rx{};
+  if (!build_command_frame(command, data, false, tx))
+    return hal::Status::kInvalidArgument;
+  if (spi_.transfer(tx, rx) != hal::Status::kOk) {
+    ++decoder_.counters().bus_errors;
+    return hal::Status::kBusError;
+  }
+  crc_ok = parse_response_frame(rx, response) == ParseResult::kOk;
+  return hal::Status::kOk;
+}
+
+hal::Status Ads131Fluxgate::init() noexcept {
+  initialised_ = false;
+  Response r;
+  bool crc_ok = false;
+  // A command's response appears in the next frame, so each command is followed by a NULL.
+  if (auto s = exchange(kCmdReset, {}, r, crc_ok); s != hal::Status::kOk)
+    return s;
+  if (auto s = exchange(kCmdNull, {}, r, crc_ok); s != hal::Status::kOk)
+    return s;
+  if (!crc_ok || r.response != kResetResponse)
+    return hal::Status::kNotReady;
+  const std::array<std::uint16_t, 1> gain{gain1_register(decoder_.config().gain_code)};
+  if (auto s = exchange(wreg(kRegGain1, 1), gain, r, crc_ok); s != hal::Status::kOk)
+    return s;
+  if (auto s = exchange(kCmdNull, {}, r, crc_ok); s != hal::Status::kOk)
+    return s;
+  if (!crc_ok || r.response != wreg_response(kRegGain1, 1))
+    return hal::Status::kNotReady;
+  decoder_.reset_stuck_detector();
+  initialised_ = true;
+  return hal::Status::kOk;
+}
+
+hal::Status Ads131Fluxgate::read(hal::MagnetometerSample& out, std::uint32_t timeout_us) noexcept {
+  if (!initialised_)
+    return hal::Status::kNotReady;
+  hal::EdgeEvent ev;
+  // Only a falling edge (DRDY is active low) announces a conversion; rising edges are skipped.
+  do {
+    const hal::Status s = drdy_.wait_edge(ev, timeout_us);
+    if (s == hal::Status::kTimeout || s == hal::Status::kNoData) {
+      if (timeout_us > 0)
+        ++decoder_.counters().timeouts;
+      return hal::Status::kTimeout;
+    }
+    if (s != hal::Status::kOk) {
+      ++decoder_.counters().bus_errors;
+      return s;
+    }
+  } while (ev.edge != hal::Edge::kFalling);
+  Frame tx{};
+  Frame rx{};
+  build_command_frame(kCmdNull, {}, false, tx);
+  if (spi_.transfer(tx, rx) != hal::Status::kOk) {
+    ++decoder_.counters().bus_errors;
+    return hal::Status::kBusError;
+  }
+  return decoder_.decode(rx, ev.t_us, out);
+}
+
+}  // namespace magvec::drivers

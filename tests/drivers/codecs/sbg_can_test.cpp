@@ -1,0 +1,210 @@
+#include "magvec/drivers/sbg_can.hpp"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+
+#include "support/alloc_counter.hpp"
+
+namespace magvec::drivers::sbg {
+namespace {
+
+using core::Mat3;
+constexpr double kDeg = core::kPi<double> / 180.0;
+
+hal::CanFrame frame(std::uint32_t id, std::initializer_list<std::uint8_t> bytes,
+                    std::uint64_t t = 0) {
+  hal::CanFrame f;
+  f.id = id;
+  f.dlc = static_cast<std::uint8_t>(bytes.size());
+  std::size_t i = 0;
+  for (auto b : bytes)
+    f.data[i++] = b;
+  f.t_us = t;
+  return f;
+}
+
+Mat3<double> r_bn_of(const hal::AttitudeSample& s) {
+  return core::r_bn_from_quat(core::Quat<double>(s.q_nb[0], s.q_nb[1], s.q_nb[2], s.q_nb[3]));
+}
+
+TEST(SbgCan, HandAssembledEpochWithQuaternion) {
+  CanDecoder dec;
+  // STATUS_03: mode 4 (NAV_POSITION) | ATTITUDE_VALID | HEADING_VALID = 0x34.
+  EXPECT_EQ(dec.feed(frame(0x102, {0x34, 0x00, 0x00, 0x00, 0x00, 0x00})), FeedResult::kConsumed);
+  // ORIENTATION_ACC: 17, 17, 87 (x1e-4 rad).
+  EXPECT_EQ(dec.feed(frame(0x133, {0x11, 0x00, 0x11, 0x00, 0x57, 0x00})), FeedResult::kConsumed);
+  // EKF_INFO: time stamp 12345678h us, little endian.
+  EXPECT_EQ(dec.feed(frame(0x130, {0x78, 0x56, 0x34, 0x12})), FeedResult::kConsumed);
+  EXPECT_EQ(dec.raw().ekf_time_us, 0x12345678u);
+  // EKF_QUAT: q0 = 32767 (identity): FRD aligned with NED, i.e. RFU aligned with ENU.
+  ASSERT_EQ(dec.feed(frame(0x131, {0xFF, 0x7F, 0, 0, 0, 0, 0, 0}, 999)), FeedResult::kSample);
+  const hal::AttitudeSample& s = dec.sample();
+  EXPECT_EQ(s.t_us, 999u);
+  EXPECT_EQ(s.t_ins_us, 0x12345678u);
+  EXPECT_NEAR((r_bn_of(s) - Mat3<double>::Identity()).norm(), 0, 1e-12);
+  EXPECT_EQ(s.solution_mode, 4);
+  EXPECT_EQ(s.flags, hal::kAttAttitudeValid | hal::kAttHeadingValid | hal::kAttStatusKnown |
+                         hal::kAttAccuracyKnown);
+  EXPECT_DOUBLE_EQ(s.sigma_rad[0], 17e-4);
+  EXPECT_DOUBLE_EQ(s.sigma_rad[2], 87e-4);
+
+  // Heading East: q = (cos 45, 0, 0, sin 45) -> round(0.70710678 * 32767) = 23170 = 5A82h.
+  EXPECT_EQ(dec.feed(frame(0x130, {0x10, 0, 0, 0})), FeedResult::kConsumed);
+  ASSERT_EQ(dec.feed(frame(0x131, {0x82, 0x5A, 0, 0, 0, 0, 0x82, 0x5A})), FeedResult::kSample);
+  const Mat3<double> expected = core::r_bn_from_ypr(core::YawPitchRoll<double>{90 * kDeg, 0, 0});
+  EXPECT_NEAR((r_bn_of(dec.sample()) - expected).norm(), 0, 1e-9);
+  // Vehicle heading East: the Forward (body y) axis sees the East component.
+  EXPECT_NEAR((r_bn_of(dec.sample()) * core::Vec3<double>(1, 0, 0)).y(), 1, 1e-9);
+}
+
+TEST(SbgCan, HandAssembledEuler) {
+  DecoderConfig cfg;
+  cfg.source = AttitudeMessage::kEuler;
+  CanDecoder dec(cfg);
+  EXPECT_EQ(dec.feed(frame(0x130, {0x01, 0x00, 0x00, 0x00})), FeedResult::kConsumed);
+  // roll 0.1 rad = 1000 = 03E8h, pitch -0.2 rad = -2000 = F830h, yaw 3.1415 rad = 31415 = 7AB7h.
+  ASSERT_EQ(dec.feed(frame(0x132, {0xE8, 0x03, 0x30, 0xF8, 0xB7, 0x7A})), FeedResult::kSample);
+  EXPECT_EQ(dec.raw().euler[1], -2000);
+  const Mat3<double> expected = core::r_bn_from_ypr(core::YawPitchRoll<double>{3.1415, -0.2, 0.1});
+  EXPECT_NEAR((r_bn_of(dec.sample()) - expected).norm(), 0, 1e-12);
+  EXPECT_EQ(dec.sample().flags, 0u);  // no status or accuracy received yet: validity unknown
+  // The quaternion is decoded (checked) but does not produce a sample in Euler mode.
+  EXPECT_EQ(dec.feed(frame(0x131, {0xFF, 0x7F, 0, 0, 0, 0, 0, 0})), FeedResult::kConsumed);
+}
+
+// The SBG quaternion for aerospace (roll, pitch, yaw) is the textbook body->NED quaternion;
+// both message paths must give the same R_bn.
+TEST(SbgCan, QuaternionAndEulerPathsAgree) {
+  std::mt19937_64 rng(5);
+  std::uniform_real_distribution<double> ang(-170, 170), tilt(-80, 80);
+  for (int i = 0; i < 300; ++i) {
+    const double r = ang(rng) * kDeg, p = tilt(rng) * kDeg, y = ang(rng) * kDeg;
+    const double cr = std::cos(r / 2), sr = std::sin(r / 2), cp = std::cos(p / 2),
+                 sp = std::sin(p / 2), cy = std::cos(y / 2), sy = std::sin(y / 2);
+    const std::array<double, 4> q{cr * cp * cy + sr * sp * sy, sr * cp * cy - cr * sp * sy,
+                                  cr * sp * cy + sr * cp * sy, cr * cp * sy - sr * sp * cy};
+    const Mat3<double> from_q = r_bn_from_sbg_quat(q);
+    const Mat3<double> from_e = core::r_bn_from_ypr(core::YawPitchRoll<double>{y, p, r});
+    ASSERT_NEAR((from_q - from_e).norm(), 0, 1e-12);
+    const std::array<double, 4> back = sbg_quat_from_r_bn(from_e);
+    const double sign = q[0] < 0 ? -1 : 1;
+    for (std::size_t k = 0; k < 4; ++k)
+      ASSERT_NEAR(back[k], sign * q[k], 1e-12);
+  }
+}
+
+TEST(SbgCan, EncodersProduceTheDocumentedBytes) {
+  const hal::CanFrame info = encode_ekf_info(0x12345678u);
+  EXPECT_EQ(info.id, 0x130u);
+  EXPECT_EQ(info.dlc, 4);
+  EXPECT_EQ(info.data[0], 0x78);
+  EXPECT_EQ(info.data[3], 0x12);
+  const hal::CanFrame e = encode_ekf_euler(0.1, -0.2, 3.1415);
+  const std::array<std::uint8_t, 6> eb{0xE8, 0x03, 0x30, 0xF8, 0xB7, 0x7A};
+  for (std::size_t i = 0; i < 6; ++i)
+    EXPECT_EQ(e.data[i], eb[i]);
+  const hal::CanFrame q = encode_ekf_quat({std::sqrt(0.5), 0, 0, std::sqrt(0.5)});
+  EXPECT_EQ(q.data[0], 0x82);
+  EXPECT_EQ(q.data[1], 0x5A);
+  const hal::CanFrame a = encode_orientation_acc(17e-4, 17e-4, 87e-4);
+  EXPECT_EQ(a.data[4], 0x57);
+  const hal::CanFrame st = encode_status_03(0x34, 0);
+  EXPECT_EQ(st.id, 0x102u);
+  EXPECT_EQ(st.dlc, 6);
+  EXPECT_EQ(st.data[0], 0x34);
+  const hal::CanFrame s1 = encode_status_01(1, 0x00FF, 0x0102);
+  EXPECT_EQ(s1.id, 0x100u);
+  EXPECT_EQ(s1.data[4], 0xFF);
+  EXPECT_EQ(s1.data[7], 0x01);
+  // Saturation instead of wrap-around.
+  const hal::CanFrame big = encode_ekf_euler(10.0, -10.0, 0);
+  EXPECT_EQ(big.data[0] | (big.data[1] << 8), 0x7FFF);
+  EXPECT_EQ(big.data[2] | (big.data[3] << 8), 0x8000);
+  // Round trip through the decoder, with configurable IDs.
+  CanIds ids;
+  ids.ekf_info = 0x530;
+  ids.ekf_quat = 0x531;
+  DecoderConfig cfg;
+  cfg.ids = ids;
+  CanDecoder dec(cfg);
+  EXPECT_EQ(dec.feed(encode_ekf_info(7)), FeedResult::kIgnored);  // default ID, not configured
+  EXPECT_EQ(dec.feed(encode_ekf_info(7, ids)), FeedResult::kConsumed);
+  const Mat3<double> r = core::r_bn_from_ypr(core::YawPitchRoll<double>{0.5, 0.2, -0.3});
+  ASSERT_EQ(dec.feed(encode_ekf_quat(sbg_quat_from_r_bn(r), ids)), FeedResult::kSample);
+  // int16 quantisation of the quaternion: ~1.5e-5 per component.
+  EXPECT_LT(core::rotation_angle_between(r_bn_of(dec.sample()), r), 1e-4);
+}
+
+TEST(SbgCan, CorruptTruncatedAndOutOfOrderFrames) {
+  CanDecoder dec;
+  // Attitude without a time stamp: dropped and counted.
+  EXPECT_EQ(dec.feed(frame(0x131, {0xFF, 0x7F, 0, 0, 0, 0, 0, 0})), FeedResult::kMissingTime);
+  EXPECT_EQ(dec.counters().missing_time, 1u);
+  // Truncated frames.
+  EXPECT_EQ(dec.feed(frame(0x130, {0x01, 0x02, 0x03})), FeedResult::kMalformed);
+  EXPECT_EQ(dec.feed(frame(0x131, {0xFF, 0x7F, 0, 0, 0, 0})), FeedResult::kMalformed);
+  EXPECT_EQ(dec.feed(frame(0x132, {0, 0, 0, 0})), FeedResult::kMalformed);
+  EXPECT_EQ(dec.feed(frame(0x133, {0, 0})), FeedResult::kMalformed);
+  EXPECT_EQ(dec.feed(frame(0x102, {0x34, 0, 0, 0})), FeedResult::kMalformed);
+  EXPECT_EQ(dec.feed(frame(0x100, {0, 0, 0, 0, 0, 0})), FeedResult::kMalformed);
+  // Impossible content: |q| = 0, yaw 3.2767 rad, pitch 1.6 rad, solution mode 9, accuracy > pi.
+  EXPECT_EQ(dec.feed(frame(0x131, {0, 0, 0, 0, 0, 0, 0, 0})), FeedResult::kMalformed);
+  EXPECT_EQ(dec.feed(frame(0x131, {0xFF, 0x7F, 0xFF, 0x7F, 0, 0, 0, 0})), FeedResult::kMalformed);
+  EXPECT_EQ(dec.feed(frame(0x132, {0, 0, 0, 0, 0xFF, 0x7F})), FeedResult::kMalformed);
+  EXPECT_EQ(dec.feed(frame(0x132, {0, 0, 0x80, 0x3E, 0, 0})), FeedResult::kMalformed);
+  EXPECT_EQ(dec.feed(frame(0x102, {0x09, 0, 0, 0, 0, 0})), FeedResult::kMalformed);
+  EXPECT_EQ(dec.feed(frame(0x133, {0xFF, 0xFF, 0, 0, 0, 0})), FeedResult::kMalformed);
+  EXPECT_EQ(dec.counters().malformed, 12u);
+  EXPECT_EQ(dec.counters().samples, 0u);
+  // Extended ID with a matching number is not ours.
+  hal::CanFrame ext = frame(0x130, {1, 2, 3, 4});
+  ext.extended = true;
+  EXPECT_EQ(dec.feed(ext), FeedResult::kIgnored);
+  // Invalid solution status is passed on as flags (the loop decides), not dropped.
+  EXPECT_EQ(dec.feed(encode_status_03(0x02, 0)), FeedResult::kConsumed);  // AHRS, nothing valid
+  EXPECT_EQ(dec.feed(encode_ekf_info(5)), FeedResult::kConsumed);
+  ASSERT_EQ(dec.feed(encode_ekf_quat({1, 0, 0, 0})), FeedResult::kSample);
+  EXPECT_EQ(dec.sample().flags & (hal::kAttAttitudeValid | hal::kAttHeadingValid), 0u);
+  EXPECT_TRUE(dec.sample().flags & hal::kAttStatusKnown);
+  // One EKF_INFO serves one sample only.
+  EXPECT_EQ(dec.feed(encode_ekf_quat({1, 0, 0, 0})), FeedResult::kMissingTime);
+}
+
+class FakeCan final : public hal::CanBus {
+ public:
+  hal::Status receive(hal::CanFrame& out, std::uint32_t) noexcept override {
+    if (next >= frames.size())
+      return hal::Status::kTimeout;
+    out = frames[next++];
+    return hal::Status::kOk;
+  }
+  hal::Status send(const hal::CanFrame&) noexcept override { return hal::Status::kOk; }
+  std::array<hal::CanFrame, 400> frames{};
+  std::size_t next{0};
+};
+
+TEST(SbgCan, AttitudeSourceOverCanBusWithoutAllocations) {
+  FakeCan bus;
+  for (std::size_t i = 0; i < 100; ++i) {
+    bus.frames[4 * i] = encode_status_03(0x34, 0);
+    bus.frames[4 * i + 1] = encode_ekf_info(static_cast<std::uint32_t>(10000 * i));
+    bus.frames[4 * i + 2] = encode_orientation_acc(1e-3, 1e-3, 3e-3);
+    bus.frames[4 * i + 3] = encode_ekf_quat(sbg_quat_from_r_bn(
+        core::r_bn_from_ypr(core::YawPitchRoll<double>{0.01 * static_cast<double>(i), 0.1, 0.2})));
+  }
+  CanAttitudeSource src(bus);
+  hal::AttitudeSample s;
+  magvec::test::AllocationScope scope;
+  for (std::size_t i = 0; i < 100; ++i) {
+    ASSERT_EQ(src.read(s, 1000), hal::Status::kOk);
+    EXPECT_EQ(s.t_ins_us, 10000 * i);
+  }
+  EXPECT_EQ(src.read(s, 1000), hal::Status::kTimeout);
+  EXPECT_EQ(scope.count(), 0u);
+  EXPECT_EQ(src.counters().samples, 100u);
+}
+
+}  // namespace
+}  // namespace magvec::drivers::sbg

@@ -1,0 +1,171 @@
+// End-to-end tests of the magvec CLI: --version, simulate (CSV + truth header, determinism, bad
+// option values -> non-zero exit) and the temporary demo.
+#include <gtest/gtest.h>
+#include <stdlib.h>
+#include <sys/wait.h>
+
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <string>
+
+#include "magvec/core/compensator.hpp"
+#include "magvec/drivers/sim/simulator.hpp"
+#include "magvec/host/io/csv.hpp"
+
+namespace {
+
+namespace fs = std::filesystem;
+
+struct Result {
+  int status;
+  std::string output;  // stdout + stderr
+};
+
+Result run(const std::string& args) {
+  const std::string cmd = std::string(MAGVEC_CLI) + " " + args + " 2>&1";
+  FILE* p = ::popen(cmd.c_str(), "r");
+  if (p == nullptr)
+    return {-1, ""};
+  std::string out;
+  char buf[4096];
+  std::size_t n = 0;
+  while ((n = std::fread(buf, 1, sizeof(buf), p)) > 0)
+    out.append(buf, n);
+  const int st = ::pclose(p);
+  return {WIFEXITED(st) ? WEXITSTATUS(st) : -1, out};
+}
+
+std::string slurp(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+class Cli : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    std::string templ = (fs::temp_directory_path() / "magvec_cli_XXXXXX").string();
+    ASSERT_NE(::mkdtemp(templ.data()), nullptr);
+    dir_ = templ;
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+  std::string file(const char* name) const { return (dir_ / name).string(); }
+  fs::path dir_;
+};
+
+TEST_F(Cli, Version) {
+  const Result r = run("--version");
+  EXPECT_EQ(r.status, 0);
+  EXPECT_NE(r.output.find("magvec 0."), std::string::npos) << r.output;
+}
+
+TEST_F(Cli, SimulateWritesAReadableCsvWithTruthHeader) {
+  const Result r = run("simulate --scenario li2023 --seed 3 --out " + file("li.csv"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  magvec::host::io::CsvReader reader(file("li.csv"));
+  bool seed = false, li = false, ge = false, sine = false;
+  for (const std::string& c : reader.comments()) {
+    seed = seed || c.find("scenario li2023, seed 3") != std::string::npos;
+    li = li || c.find("truth Li 2023: Ks = [1.08, 1.02") != std::string::npos;
+    ge = ge || c.find("truth Ge 2017: C = ") != std::string::npos;
+    sine = sine || c.find("truth sine fit: k = ") != std::string::npos;
+  }
+  EXPECT_TRUE(seed && li && ge && sine);
+  EXPECT_EQ(reader.attitude_columns(), magvec::host::io::AttitudeColumns::kLi);
+  // The file matches the simulator: compensating with the truth gives |h| within the noise.
+  const magvec::drivers::sim::ScenarioConfig cfg = magvec::drivers::sim::scenario_li2023();
+  const magvec::core::Compensator<double> comp(cfg.truth);
+  magvec::host::io::CsvRecord rec;
+  int n = 0;
+  while (reader.next(&rec)) {
+    magvec::core::Compensated<double> c;
+    ASSERT_TRUE(comp.compensate(rec.m_nT, &c));
+    EXPECT_NEAR(c.intensity, *rec.f_nT, 2.0);  // 0.3 nT noise: 2 nT is > 6 sigma
+    ASSERT_TRUE(rec.r_bn.has_value());
+    ++n;
+  }
+  EXPECT_EQ(n, 60);
+}
+
+TEST_F(Cli, SimulateIsDeterministicFromTheSeed) {
+  ASSERT_EQ(run("simulate --scenario sine-xz --fixture housing-y --noise-nT 15 --seed 7 --out " +
+                file("a.csv"))
+                .status,
+            0);
+  ASSERT_EQ(run("simulate --scenario sine-xz --fixture housing-y --noise-nT 15 --seed 7 --out " +
+                file("b.csv"))
+                .status,
+            0);
+  ASSERT_EQ(run("simulate --scenario sine-xz --fixture housing-y --noise-nT 15 --seed 8 --out " +
+                file("c.csv"))
+                .status,
+            0);
+  EXPECT_EQ(slurp(file("a.csv")), slurp(file("b.csv")));
+  EXPECT_NE(slurp(file("a.csv")), slurp(file("c.csv")));
+  EXPECT_NE(slurp(file("a.csv")).find("sine-xz-housing-y"), std::string::npos);
+}
+
+TEST_F(Cli, SimulateOptionsChangeTheOutput) {
+  ASSERT_EQ(
+      run("simulate --scenario ge2017 --samples 5000 --dropout-rate 0.1 --spike-rate 0.05 --out " +
+          file("ge.csv"))
+          .status,
+      0);
+  magvec::host::io::CsvReader reader(file("ge.csv"));
+  const std::size_t flags = reader.column_index("flags").value();
+  magvec::host::io::CsvRecord rec;
+  int n = 0, drop = 0, spikes = 0;
+  while (reader.next(&rec)) {
+    ++n;
+    drop += rec.dropout ? 1 : 0;
+    spikes += (static_cast<int>(reader.value(flags)) & 1) != 0 ? 1 : 0;
+    EXPECT_FALSE(rec.r_bn.has_value());  // Ge: no INS
+  }
+  EXPECT_EQ(n, 5000);
+  EXPECT_NEAR(drop, 500, 5 * std::sqrt(5000 * 0.1 * 0.9));
+  EXPECT_NEAR(spikes, 250, 5 * std::sqrt(5000 * 0.05 * 0.95));
+}
+
+TEST_F(Cli, BadOptionValuesFailWithAMessage) {
+  const std::string out = " --out " + file("x.csv");
+  const struct {
+    std::string args;
+    std::string message;
+  } cases[] = {
+      {"simulate --scenario mars" + out, "mars not in"},
+      {"simulate --scenario li2023 --spike-rate 2" + out, "--spike-rate"},
+      {"simulate --scenario li2023 --dropout-rate -0.1" + out, "--dropout-rate"},
+      {"simulate --scenario li2023 --noise-nT -1" + out, "--noise-nT"},
+      {"simulate --scenario li2023 --samples 0" + out, "--samples"},
+      {"simulate --scenario li2023 --samples many" + out, "--samples"},
+      {"simulate --scenario li2023 --fixture housing-y" + out,
+       "applies only to --scenario sine-xz"},
+      {"simulate --scenario sine-xz --fixture sideways" + out, "sideways not in"},
+      {"simulate --scenario ge2017 --ins-latency-s 0.1" + out, "has no INS"},
+      {"simulate --scenario li2023 --step-nT 1,2,3" + out, "needs --step-time-s"},
+      {"simulate --scenario li2023", "--out is required"},
+      {"simulate --scenario li2023 --out " + file("missing/dir/x.csv"), "cannot create"},
+      {"frobnicate", "frobnicate"},
+  };
+  for (const auto& c : cases) {
+    SCOPED_TRACE(c.args);
+    const Result r = run(c.args);
+    EXPECT_NE(r.status, 0);
+    EXPECT_NE(r.output.find(c.message), std::string::npos) << r.output;
+  }
+  EXPECT_FALSE(fs::exists(file("x.csv")));
+}
+
+TEST_F(Cli, DemoWritesTheSurveyAndSaysItUsesTheTruth) {
+  const Result r = run("demo --out-dir " + file("demo"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_TRUE(fs::exists(dir_ / "demo" / "survey.csv"));
+  EXPECT_NE(r.output.find("uses the TRUE simulation parameters"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("RMS error vs F"), std::string::npos);
+  EXPECT_NE(r.output.find("North"), std::string::npos);
+}
+
+}  // namespace

@@ -20,7 +20,8 @@ template <typename Derived>
 json to_array(const Eigen::MatrixBase<Derived>& m, double scale = 1.0) {
   json a = json::array();
   for (Eigen::Index r = 0; r < m.rows(); ++r) {
-    for (Eigen::Index c = 0; c < m.cols(); ++c) a.push_back(m(r, c) * scale);
+    for (Eigen::Index c = 0; c < m.cols(); ++c)
+      a.push_back(m(r, c) * scale);
   }
   return a;
 }
@@ -29,12 +30,14 @@ json to_array(const Eigen::MatrixBase<Derived>& m, double scale = 1.0) {
   throw CalibrationFileError(source + ": " + what);
 }
 
-const json& field(const json& j, const char* key, const std::string& source, const std::string& path) {
+const json& field(const json& j, const char* key, const std::string& source,
+                  const std::string& path) {
   if (!j.is_object() || !j.contains(key)) fail(source, "missing field '" + path + key + "'");
   return j.at(key);
 }
 
-std::vector<double> numbers(const json& j, std::size_t n, const std::string& source, const std::string& name) {
+std::vector<double> numbers(const json& j, std::size_t n, const std::string& source,
+                            const std::string& name) {
   if (!j.is_array() || j.size() != n) {
     fail(source, "field '" + name + "' must be an array of " + std::to_string(n) + " numbers");
   }
@@ -49,7 +52,8 @@ std::vector<double> numbers(const json& j, std::size_t n, const std::string& sou
 }
 
 double number(const json& j, const std::string& source, const std::string& name) {
-  if (!j.is_number() || !std::isfinite(j.get<double>())) fail(source, "field '" + name + "' must be a finite number");
+  if (!j.is_number() || !std::isfinite(j.get<double>()))
+    fail(source, "field '" + name + "' must be a finite number");
   return j.get<double>();
 }
 
@@ -83,27 +87,32 @@ std::string to_json_text(const CalibrationFile& cal) {
   }
   if (cal.h_n_nT) j["h_n_nT"] = to_array(*cal.h_n_nT);
   json sigma = json::object();
-  for (const auto& [name, values] : cal.sigma) sigma[name] = values;
+  for (const auto& [name, values] : cal.sigma)
+    sigma[name] = values;
   j["sigma"] = sigma;
   json extra = json::object();
-  for (const auto& [name, value] : cal.quality.extra) extra[name] = value;
+  for (const auto& [name, value] : cal.quality.extra)
+    extra[name] = value;
   j["quality"] = {{"verdict", cal.quality.verdict},
                   {"reason", cal.quality.reason},
                   {"coverage", cal.quality.coverage},
                   {"condition", cal.quality.condition},
-                  {"residual_rms_nT", {{"before", cal.quality.residual_rms_before_nT},
-                                       {"after", cal.quality.residual_rms_after_nT}}},
-                  {"counts", {{"samples", cal.counts.samples},
-                              {"used", cal.counts.used},
-                              {"skipped_nonfinite", cal.counts.skipped_nonfinite},
-                              {"rejected_outliers", cal.counts.rejected_outliers}}},
+                  {"residual_rms_nT",
+                   {{"before", cal.quality.residual_rms_before_nT},
+                    {"after", cal.quality.residual_rms_after_nT}}},
+                  {"counts",
+                   {{"samples", cal.counts.samples},
+                    {"used", cal.counts.used},
+                    {"skipped_nonfinite", cal.counts.skipped_nonfinite},
+                    {"rejected_outliers", cal.counts.rejected_outliers}}},
                   {"extra", extra}};
-  j["provenance"] = {{"input", cal.provenance.input},
-                     {"method", cal.provenance.method},
-                     {"samples_used", cal.counts.used},
-                     {"samples_rejected", cal.counts.rejected_outliers + cal.counts.skipped_nonfinite},
-                     {"magvec_version", cal.provenance.magvec_version},
-                     {"created_utc", cal.provenance.created_utc}};
+  j["provenance"] = {
+      {"input", cal.provenance.input},
+      {"method", cal.provenance.method},
+      {"samples_used", cal.counts.used},
+      {"samples_rejected", cal.counts.rejected_outliers + cal.counts.skipped_nonfinite},
+      {"magvec_version", cal.provenance.magvec_version},
+      {"created_utc", cal.provenance.created_utc}};
   return j.dump(2) + "\n";
 }
 
@@ -124,7 +133,8 @@ CalibrationFile from_json_text(const std::string& text, const std::string& sourc
   const std::vector<double> o = numbers(field(j, "o_nT", source, ""), 3, source, "o_nT");
   const std::vector<double> q = numbers(field(j, "Rm_quat", source, ""), 4, source, "Rm_quat");
   for (int r = 0; r < 3; ++r) {
-    for (int c = 0; c < 3; ++c) cal.model.w(r, c) = w[static_cast<std::size_t>(3 * r + c)];
+    for (int c = 0; c < 3; ++c)
+      cal.model.w(r, c) = w[static_cast<std::size_t>(3 * r + c)];
   }
   cal.model.o = core::Vec3<double>(o[0], o[1], o[2]);
   const double qn = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
@@ -141,12 +151,16 @@ CalibrationFile from_json_text(const std::string& text, const std::string& sourc
     const json& s = j["sine"];
     SineResult r;
     const std::vector<double> k = numbers(field(s, "k", source, "sine."), 3, source, "sine.k");
-    const std::vector<double> b0 = numbers(field(s, "B0_nT", source, "sine."), 3, source, "sine.B0_nT");
+    const std::vector<double> b0 =
+        numbers(field(s, "B0_nT", source, "sine."), 3, source, "sine.B0_nT");
     r.params.k = core::Vec3<double>(k[0], k[1], k[2]);
     r.params.b0 = core::Vec3<double>(b0[0], b0[1], b0[2]);
-    r.params.alpha_rad = number(field(s, "alpha_deg", source, "sine."), source, "sine.alpha_deg") * kRad;
-    r.params.beta_rad = number(field(s, "beta_deg", source, "sine."), source, "sine.beta_deg") * kRad;
-    r.params.gamma_rad = number(field(s, "gamma_deg", source, "sine."), source, "sine.gamma_deg") * kRad;
+    r.params.alpha_rad =
+        number(field(s, "alpha_deg", source, "sine."), source, "sine.alpha_deg") * kRad;
+    r.params.beta_rad =
+        number(field(s, "beta_deg", source, "sine."), source, "sine.beta_deg") * kRad;
+    r.params.gamma_rad =
+        number(field(s, "gamma_deg", source, "sine."), source, "sine.gamma_deg") * kRad;
     r.inclination_rad =
         number(field(s, "inclination_deg", source, "sine."), source, "sine.inclination_deg") * kRad;
     cal.sine = r;
@@ -191,10 +205,12 @@ CalibrationFile from_json_text(const std::string& text, const std::string& sourc
   }
   // The paper forms are derived data: if present they must agree with the canonical model.
   if (j.contains("ge")) {
-    const std::vector<double> cinv = numbers(field(j["ge"], "Cinv", source, "ge."), 9, source, "ge.Cinv");
+    const std::vector<double> cinv =
+        numbers(field(j["ge"], "Cinv", source, "ge."), 9, source, "ge.Cinv");
     const core::GeParams<double> ge = core::to_ge(cal.model);
     for (int i = 0; i < 9; ++i) {
-      if (std::abs(cinv[static_cast<std::size_t>(i)] - ge.c_inv(i / 3, i % 3)) > 1e-9 * (1 + ge.c_inv.norm())) {
+      if (std::abs(cinv[static_cast<std::size_t>(i)] - ge.c_inv(i / 3, i % 3)) >
+          1e-9 * (1 + ge.c_inv.norm())) {
         fail(source, "field 'ge.Cinv' disagrees with W and Rm_quat (edited by hand?)");
       }
     }

@@ -91,8 +91,7 @@ void run(const DemoOptions& o) {
   io::CsvReader reader(path);
   const auto idx = [&](const char* name) {
     const auto i = reader.column_index(name);
-    if (!i)
-      throw std::runtime_error(path + ": missing truth column " + name);
+    if (!i) throw std::runtime_error(path + ": missing truth column " + name);
     return *i;
   };
   const std::size_t c_e = idx("hE_true_nT"), c_n = idx("hN_true_nT"), c_u = idx("hU_true_nT");
@@ -114,8 +113,7 @@ void run(const DemoOptions& o) {
     }
     const core::Vec3<double> h_true(reader.value(c_e), reader.value(c_n), reader.value(c_u));
     core::Compensated<double> c;
-    if (!comp.compensate(rec.m_nT, &c))
-      continue;
+    if (!comp.compensate(rec.m_nT, &c)) continue;
     const double raw_f = rec.m_nT.norm();
     f_before_val.add(raw_f);
     f_before_err.add(raw_f - *rec.f_nT);

@@ -54,35 +54,24 @@ void run(const SimulateOptions& o, const CLI::App& sub) {
                                             ? drivers::sim::Fixture::kHousingY
                                             : drivers::sim::Fixture::kPlaneNormal;
   drivers::sim::ScenarioConfig c = scenario_by_name(o.scenario, fixture);
-  if (given("--samples"))
-    c.num_samples = o.samples;
-  if (given("--hold"))
-    c.samples_per_attitude = o.hold;
-  if (given("--rate-hz"))
-    c.rate_hz = o.rate_hz;
-  if (given("--noise-nT"))
-    c.mag_noise_nT = o.noise_nT;
-  if (given("--ins-noise-deg"))
-    c.ins_noise_deg = o.ins_noise_deg;
-  if (given("--f-noise-nT"))
-    c.f_noise_nT = o.f_noise_nT;
-  if (given("--ins-latency-s"))
-    c.ins_latency_s = o.ins_latency_s;
-  if (given("--turntable-step-deg"))
-    c.turntable_step_deg = o.turntable_step_deg;
+  if (given("--samples")) c.num_samples = o.samples;
+  if (given("--hold")) c.samples_per_attitude = o.hold;
+  if (given("--rate-hz")) c.rate_hz = o.rate_hz;
+  if (given("--noise-nT")) c.mag_noise_nT = o.noise_nT;
+  if (given("--ins-noise-deg")) c.ins_noise_deg = o.ins_noise_deg;
+  if (given("--f-noise-nT")) c.f_noise_nT = o.f_noise_nT;
+  if (given("--ins-latency-s")) c.ins_latency_s = o.ins_latency_s;
+  if (given("--turntable-step-deg")) c.turntable_step_deg = o.turntable_step_deg;
   c.spike_probability = o.spike_rate;
   c.spike_amplitude_nT = o.spike_nT;
   c.dropout_probability = o.dropout_rate;
-  if (given("--drift-nT-per-C"))
-    c.offset_drift_nT_per_c = vec3(o.drift_nT_per_c);
+  if (given("--drift-nT-per-C")) c.offset_drift_nT_per_c = vec3(o.drift_nT_per_c);
   c.temp_rate_c_per_s = o.temp_rate;
-  if (given("--diurnal-nT"))
-    c.diurnal_nT = vec3(o.diurnal_nT);
+  if (given("--diurnal-nT")) c.diurnal_nT = vec3(o.diurnal_nT);
   c.diurnal_period_s = o.diurnal_period_s;
   if (given("--step-nT")) {
     c.step_nT = vec3(o.step_nT);
-    if (!given("--step-time-s"))
-      throw CLI::ValidationError("--step-nT", "needs --step-time-s");
+    if (!given("--step-time-s")) throw CLI::ValidationError("--step-nT", "needs --step-time-s");
     c.step_time_s = o.step_time_s;
   }
   if (c.ins_latency_s > 0 && !c.ins) {

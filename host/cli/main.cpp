@@ -21,7 +21,6 @@ int main(int argc, char** argv) {
     std::cerr << "magvec: error: " << e.what() << "\n";
     return 1;
   }
-  if (app.get_subcommands().empty())
-    std::cout << app.help();
+  if (app.get_subcommands().empty()) std::cout << app.help();
   return 0;
 }

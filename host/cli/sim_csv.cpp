@@ -41,16 +41,11 @@ const std::vector<std::string>& scenario_names() {
 }
 
 ScenarioConfig scenario_by_name(const std::string& name, drivers::sim::Fixture fixture) {
-  if (name == "li2023")
-    return drivers::sim::scenario_li2023();
-  if (name == "ge2017")
-    return drivers::sim::scenario_ge2017();
-  if (name == "sine-xy")
-    return drivers::sim::scenario_sine_xy();
-  if (name == "sine-xz")
-    return drivers::sim::scenario_sine_xz(fixture);
-  if (name == "survey")
-    return drivers::sim::scenario_survey();
+  if (name == "li2023") return drivers::sim::scenario_li2023();
+  if (name == "ge2017") return drivers::sim::scenario_ge2017();
+  if (name == "sine-xy") return drivers::sim::scenario_sine_xy();
+  if (name == "sine-xz") return drivers::sim::scenario_sine_xz(fixture);
+  if (name == "survey") return drivers::sim::scenario_survey();
   throw std::invalid_argument("unknown scenario '" + name + "'");
 }
 

@@ -23,19 +23,16 @@ hal::Status Ads131FrameDecoder::decode(std::span<const std::uint8_t, kFrameBytes
     return hal::Status::kMalformed;
   }
   std::uint32_t flags = 0;
-  if ((r.response & kStatusReset) != 0)
-    flags |= hal::kMagDeviceReset;
+  if ((r.response & kStatusReset) != 0) flags |= hal::kMagDeviceReset;
   for (std::size_t axis = 0; axis < 3; ++axis) {
     const std::uint8_t ch = config_.channel_of_axis[axis] & 3u;
     const std::int32_t code = r.codes[ch];
-    if ((r.response & (1u << ch)) == 0)
-      flags |= hal::kMagNotFresh;
+    if ((r.response & (1u << ch)) == 0) flags |= hal::kMagNotFresh;
     if (code == kCodePositiveFullScale || code == kCodeNegativeFullScale) {
       flags |= hal::kMagSaturated;
     }
     if (code == last_code_[axis]) {
-      if (repeat_[axis] < 0xFFFFFFFFu)
-        ++repeat_[axis];
+      if (repeat_[axis] < 0xFFFFFFFFu) ++repeat_[axis];
     } else {
       last_code_[axis] = code;
       repeat_[axis] = 1;
@@ -50,10 +47,8 @@ hal::Status Ads131FrameDecoder::decode(std::span<const std::uint8_t, kFrameBytes
   out.flags = flags;
   out.sequence = sequence_++;
   ++counters_.samples;
-  if ((flags & hal::kMagSaturated) != 0)
-    ++counters_.saturated;
-  if ((flags & hal::kMagStuck) != 0)
-    ++counters_.stuck;
+  if ((flags & hal::kMagSaturated) != 0) ++counters_.saturated;
+  if ((flags & hal::kMagStuck) != 0) ++counters_.stuck;
   return hal::Status::kOk;
 }
 
@@ -61,8 +56,7 @@ hal::Status Ads131Fluxgate::exchange(std::uint16_t command, std::span<const std:
                                      Response& response, bool& crc_ok) noexcept {
   Frame tx{};
   Frame rx{};
-  if (!build_command_frame(command, data, false, tx))
-    return hal::Status::kInvalidArgument;
+  if (!build_command_frame(command, data, false, tx)) return hal::Status::kInvalidArgument;
   if (spi_.transfer(tx, rx) != hal::Status::kOk) {
     ++decoder_.counters().bus_errors;
     return hal::Status::kBusError;
@@ -76,34 +70,26 @@ hal::Status Ads131Fluxgate::init() noexcept {
   Response r;
   bool crc_ok = false;
   // A command's response appears in the next frame, so each command is followed by a NULL.
-  if (auto s = exchange(kCmdReset, {}, r, crc_ok); s != hal::Status::kOk)
-    return s;
-  if (auto s = exchange(kCmdNull, {}, r, crc_ok); s != hal::Status::kOk)
-    return s;
-  if (!crc_ok || r.response != kResetResponse)
-    return hal::Status::kNotReady;
+  if (auto s = exchange(kCmdReset, {}, r, crc_ok); s != hal::Status::kOk) return s;
+  if (auto s = exchange(kCmdNull, {}, r, crc_ok); s != hal::Status::kOk) return s;
+  if (!crc_ok || r.response != kResetResponse) return hal::Status::kNotReady;
   const std::array<std::uint16_t, 1> gain{gain1_register(decoder_.config().gain_code)};
-  if (auto s = exchange(wreg(kRegGain1, 1), gain, r, crc_ok); s != hal::Status::kOk)
-    return s;
-  if (auto s = exchange(kCmdNull, {}, r, crc_ok); s != hal::Status::kOk)
-    return s;
-  if (!crc_ok || r.response != wreg_response(kRegGain1, 1))
-    return hal::Status::kNotReady;
+  if (auto s = exchange(wreg(kRegGain1, 1), gain, r, crc_ok); s != hal::Status::kOk) return s;
+  if (auto s = exchange(kCmdNull, {}, r, crc_ok); s != hal::Status::kOk) return s;
+  if (!crc_ok || r.response != wreg_response(kRegGain1, 1)) return hal::Status::kNotReady;
   decoder_.reset_stuck_detector();
   initialised_ = true;
   return hal::Status::kOk;
 }
 
 hal::Status Ads131Fluxgate::read(hal::MagnetometerSample& out, std::uint32_t timeout_us) noexcept {
-  if (!initialised_)
-    return hal::Status::kNotReady;
+  if (!initialised_) return hal::Status::kNotReady;
   hal::EdgeEvent ev;
   // Only a falling edge (DRDY is active low) announces a conversion; rising edges are skipped.
   do {
     const hal::Status s = drdy_.wait_edge(ev, timeout_us);
     if (s == hal::Status::kTimeout || s == hal::Status::kNoData) {
-      if (timeout_us > 0)
-        ++decoder_.counters().timeouts;
+      if (timeout_us > 0) ++decoder_.counters().timeouts;
       return hal::Status::kTimeout;
     }
     if (s != hal::Status::kOk) {

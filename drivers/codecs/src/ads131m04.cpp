@@ -12,8 +12,7 @@ std::uint16_t output_crc(std::span<const std::uint8_t, kFrameBytes> frame) noexc
 bool build_command_frame(std::uint16_t command, std::span<const std::uint16_t> data_words,
                          bool with_input_crc, Frame& out) noexcept {
   const std::size_t max_data = kFrameWords - 1 - (with_input_crc ? 1 : 0);
-  if (data_words.size() > max_data)
-    return false;
+  if (data_words.size() > max_data) return false;
   out.fill(0);
   encode_word16(command, out.data());
   std::size_t word = 1;

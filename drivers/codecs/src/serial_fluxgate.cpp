@@ -9,20 +9,16 @@ namespace magvec::drivers {
 namespace {
 
 int hex_value(char c) noexcept {
-  if (c >= '0' && c <= '9')
-    return c - '0';
-  if (c >= 'A' && c <= 'F')
-    return c - 'A' + 10;
-  if (c >= 'a' && c <= 'f')
-    return c - 'a' + 10;
+  if (c >= '0' && c <= '9') return c - '0';
+  if (c >= 'A' && c <= 'F') return c - 'A' + 10;
+  if (c >= 'a' && c <= 'f') return c - 'a' + 10;
   return -1;
 }
 
 // Decimal number [+-]digits[.digits][(e|E)[+-]digits], the whole range [b, e) must be consumed.
 // Up to 18 significant digits are kept exactly; the scaling by a power of ten is done once.
 bool parse_decimal(const char* b, const char* e, double& out) noexcept {
-  if (b == e)
-    return false;
+  if (b == e) return false;
   bool negative = false;
   if (*b == '+' || *b == '-') {
     negative = *b == '-';
@@ -36,8 +32,7 @@ bool parse_decimal(const char* b, const char* e, double& out) noexcept {
     any_digit = true;
     if (digits < 18) {
       mantissa = mantissa * 10 + static_cast<std::uint64_t>(*b - '0');
-      if (mantissa != 0)
-        ++digits;
+      if (mantissa != 0) ++digits;
     } else {
       ++exponent;
     }
@@ -48,14 +43,12 @@ bool parse_decimal(const char* b, const char* e, double& out) noexcept {
       any_digit = true;
       if (digits < 18) {
         mantissa = mantissa * 10 + static_cast<std::uint64_t>(*b - '0');
-        if (mantissa != 0)
-          ++digits;
+        if (mantissa != 0) ++digits;
         --exponent;
       }
     }
   }
-  if (!any_digit)
-    return false;
+  if (!any_digit) return false;
   if (b != e && (*b == 'e' || *b == 'E')) {
     ++b;
     bool exp_negative = false;
@@ -63,34 +56,28 @@ bool parse_decimal(const char* b, const char* e, double& out) noexcept {
       exp_negative = *b == '-';
       ++b;
     }
-    if (b == e)
-      return false;
+    if (b == e) return false;
     int ex = 0;
     for (; b != e && *b >= '0' && *b <= '9'; ++b) {
-      if (ex < 1000)
-        ex = ex * 10 + (*b - '0');
+      if (ex < 1000) ex = ex * 10 + (*b - '0');
     }
     exponent += exp_negative ? -ex : ex;
   }
-  if (b != e)
-    return false;
-  if (exponent < -300 || exponent > 300)
-    return false;
+  if (b != e) return false;
+  if (exponent < -300 || exponent > 300) return false;
   double value = static_cast<double>(mantissa);
   double p = 1.0;
   for (int i = 0; i < (exponent < 0 ? -exponent : exponent); ++i)
     p *= 10.0;
   value = exponent < 0 ? value / p : value * p;
-  if (!std::isfinite(value))
-    return false;
+  if (!std::isfinite(value)) return false;
   out = negative ? -value : value;
   return true;
 }
 
 // Writes v with 3 decimals; returns bytes written or 0 if it does not fit.
 std::size_t format_fixed3(double v, std::span<char> out) noexcept {
-  if (!std::isfinite(v) || std::fabs(v) >= 1e15)
-    return 0;
+  if (!std::isfinite(v) || std::fabs(v) >= 1e15) return 0;
   char tmp[32];
   std::size_t n = 0;
   const bool negative = v < 0;
@@ -105,10 +92,8 @@ std::size_t format_fixed3(double v, std::span<char> out) noexcept {
     tmp[n++] = static_cast<char>('0' + int_part % 10);
     int_part /= 10;
   } while (int_part != 0);
-  if (negative && milli != 0)
-    tmp[n++] = '-';
-  if (n > out.size())
-    return 0;
+  if (negative && milli != 0) tmp[n++] = '-';
+  if (n > out.size()) return 0;
   for (std::size_t i = 0; i < n; ++i)
     out[i] = tmp[n - 1 - i];
   return n;
@@ -142,13 +127,11 @@ hal::Status AsciiLineDecoder::push(std::uint8_t byte, std::uint64_t t_us,
         ++counters_.garbage_bytes;
         return hal::Status::kNoData;
       }
-      if (c == '\n' || c == '\r')
-        return hal::Status::kNoData;  // empty line
+      if (c == '\n' || c == '\r') return hal::Status::kNoData;  // empty line
       start_line(t_us);
       break;
     case State::kDiscard:
-      if (c == '\n')
-        state_ = State::kIdle;
+      if (c == '\n') state_ = State::kIdle;
       ++counters_.garbage_bytes;
       return hal::Status::kNoData;
     case State::kInLine:
@@ -170,8 +153,7 @@ hal::Status AsciiLineDecoder::push(std::uint8_t byte, std::uint64_t t_us,
 
 hal::Status AsciiLineDecoder::finish_line(hal::MagnetometerSample& out) noexcept {
   std::size_t n = len_;
-  if (n > 0 && line_[n - 1] == '\r')
-    --n;
+  if (n > 0 && line_[n - 1] == '\r') --n;
   // Checksum: "*hh" at the end.
   const char* begin = line_.data();
   const char* end = line_.data() + n;
@@ -228,8 +210,7 @@ hal::Status AsciiLineDecoder::finish_line(hal::MagnetometerSample& out) noexcept
     const char* f_end = starts[1] - 1;
     std::size_t i = 0;
     for (; i < config_.tag.size() && config_.tag[i] != '\0'; ++i) {
-      if (f + i == f_end || f[i] != config_.tag[i])
-        break;
+      if (f + i == f_end || f[i] != config_.tag[i]) break;
     }
     const bool tag_done = i == config_.tag.size() || config_.tag[i] == '\0';
     if (!tag_done || f + i != f_end) {
@@ -260,30 +241,25 @@ std::size_t AsciiLineDecoder::encode(const std::array<double, 3>& m_nT, bool wit
                                      std::span<char> out) const noexcept {
   std::size_t n = 0;
   auto put = [&](char c) {
-    if (n < out.size())
-      out[n] = c;
+    if (n < out.size()) out[n] = c;
     ++n;
   };
-  if (config_.start_char != '\0')
-    put(config_.start_char);
+  if (config_.start_char != '\0') put(config_.start_char);
   const std::size_t body_start = n;
   std::size_t needed = 0;
   for (const std::uint8_t f : config_.field_of_axis)
     needed = f + 1u > needed ? f + 1u : needed;
   const std::size_t fields = config_.field_count != 0 ? config_.field_count : needed;
   for (std::size_t f = 0; f < fields; ++f) {
-    if (f > 0)
-      put(config_.separator);
+    if (f > 0) put(config_.separator);
     int axis = -1;
     for (int a = 0; a < 3; ++a) {
-      if (config_.field_of_axis[static_cast<std::size_t>(a)] == f)
-        axis = a;
+      if (config_.field_of_axis[static_cast<std::size_t>(a)] == f) axis = a;
     }
     if (axis >= 0) {
       const double units = m_nT[static_cast<std::size_t>(axis)] / config_.scale;
       const std::size_t w = n < out.size() ? format_fixed3(units, out.subspan(n)) : 0;
-      if (w == 0)
-        return 0;
+      if (w == 0) return 0;
       n += w;
     } else if (f == 0 && config_.tag[0] != '\0') {
       for (std::size_t i = 0; i < config_.tag.size() && config_.tag[i] != '\0'; ++i)
@@ -293,8 +269,7 @@ std::size_t AsciiLineDecoder::encode(const std::array<double, 3>& m_nT, bool wit
     }
   }
   if (with_checksum) {
-    if (n > out.size())
-      return 0;
+    if (n > out.size()) return 0;
     const std::uint8_t x = xor_checksum(std::span<const std::uint8_t>(
         reinterpret_cast<const std::uint8_t*>(out.data()) + body_start, n - body_start));
     static constexpr char kHex[] = "0123456789ABCDEF";
@@ -322,13 +297,11 @@ std::array<std::uint8_t, Hmr2300BinaryDecoder::kRecordBytes> Hmr2300BinaryDecode
 }
 
 bool Hmr2300BinaryDecoder::plausible(std::uint64_t end_pos) const noexcept {
-  if (at(end_pos) != kTerminator)
-    return false;
+  if (at(end_pos) != kTerminator) return false;
   for (std::size_t axis = 0; axis < 3; ++axis) {
     const std::uint64_t p = end_pos - 6 + 2 * axis;
     const auto v = static_cast<std::int16_t>(static_cast<std::uint16_t>((at(p) << 8) | at(p + 1)));
-    if (v > config_.max_abs_counts || v < -config_.max_abs_counts)
-      return false;
+    if (v > config_.max_abs_counts || v < -config_.max_abs_counts) return false;
   }
   return true;
 }
@@ -348,15 +321,13 @@ void Hmr2300BinaryDecoder::make_sample(std::uint64_t end_pos, std::uint64_t t_us
   // Everything between the previous record and this one was skipped.
   const std::uint64_t start = end_pos - 6;
   const std::uint64_t prev_next = any_emitted_ ? last_emitted_end_ + 1 : 0;
-  if (start > prev_next)
-    counters_.garbage_bytes += static_cast<std::uint32_t>(start - prev_next);
+  if (start > prev_next) counters_.garbage_bytes += static_cast<std::uint32_t>(start - prev_next);
   last_emitted_end_ = end_pos;
   any_emitted_ = true;
 }
 
 bool Hmr2300BinaryDecoder::pending(hal::MagnetometerSample& out) noexcept {
-  if (!has_pending_)
-    return false;
+  if (!has_pending_) return false;
   out = pending_;
   has_pending_ = false;
   return true;
@@ -367,8 +338,7 @@ hal::Status Hmr2300BinaryDecoder::push(std::uint8_t byte, std::uint64_t t_us,
   const std::uint64_t pos = count_++;
   history_[static_cast<std::size_t>(pos % kHistory)] = byte;
   if (locked_) {
-    if (pos != expected_end_)
-      return hal::Status::kNoData;
+    if (pos != expected_end_) return hal::Status::kNoData;
     if (plausible(pos)) {
       expected_end_ = pos + kRecordBytes;
       make_sample(pos, t_us, out);
@@ -377,8 +347,7 @@ hal::Status Hmr2300BinaryDecoder::push(std::uint8_t byte, std::uint64_t t_us,
     locked_ = false;  // terminator missing or data out of range: resynchronise
     ++counters_.malformed;
   }
-  if (byte != kTerminator || pos < kHistory - 1)
-    return hal::Status::kNoData;
+  if (byte != kTerminator || pos < kHistory - 1) return hal::Status::kNoData;
   const std::uint64_t prev_end = pos - kRecordBytes;
   if (any_emitted_ && prev_end <= last_emitted_end_) {
     // The older candidate overlaps what was already delivered; only the newer can be new.
@@ -390,8 +359,7 @@ hal::Status Hmr2300BinaryDecoder::push(std::uint8_t byte, std::uint64_t t_us,
     }
     return hal::Status::kNoData;
   }
-  if (!plausible(prev_end) || !plausible(pos))
-    return hal::Status::kNoData;
+  if (!plausible(prev_end) || !plausible(pos)) return hal::Status::kNoData;
   locked_ = true;
   expected_end_ = pos + kRecordBytes;
   make_sample(prev_end, t_us, out);

@@ -43,27 +43,23 @@ FlashParamStore::SlotInfo FlashParamStore::inspect(std::size_t slot) const noexc
   SlotInfo info;
   std::array<std::uint8_t, kHeaderSize> h{};
   const std::size_t off = slot_offset(slot);
-  if (flash_.read(off, h) != hal::Status::kOk)
-    return info;
+  if (flash_.read(off, h) != hal::Status::kOk) return info;
   if (le32(h.data()) != kMagic || le16(h.data() + 4) != kVersion ||
       le16(h.data() + 6) != kHeaderSize) {
     return info;
   }
   const std::uint32_t length = le32(h.data() + 12);
-  if (length > max_blob_size())
-    return info;
+  if (length > max_blob_size()) return info;
   std::uint32_t crc = crc32_update(kCrc32Init, std::span<const std::uint8_t>(h.data() + 4, 12));
   std::array<std::uint8_t, 64> chunk{};
   for (std::size_t done = 0; done < length;) {
     const std::size_t n = length - done < chunk.size() ? length - done : chunk.size();
     const std::span<std::uint8_t> part(chunk.data(), n);
-    if (flash_.read(off + kHeaderSize + done, part) != hal::Status::kOk)
-      return info;
+    if (flash_.read(off + kHeaderSize + done, part) != hal::Status::kOk) return info;
     crc = crc32_update(crc, part);
     done += n;
   }
-  if (crc32_final(crc) != le32(h.data() + 16))
-    return info;
+  if (crc32_final(crc) != le32(h.data() + 16)) return info;
   info.valid = true;
   info.sequence = le32(h.data() + 8);
   info.length = length;
@@ -73,27 +69,21 @@ FlashParamStore::SlotInfo FlashParamStore::inspect(std::size_t slot) const noexc
 int FlashParamStore::newest_valid(SlotInfo (&info)[2]) const noexcept {
   info[0] = inspect(0);
   info[1] = inspect(1);
-  if (info[0].valid && info[1].valid)
-    return newer(info[1].sequence, info[0].sequence) ? 1 : 0;
-  if (info[0].valid)
-    return 0;
-  if (info[1].valid)
-    return 1;
+  if (info[0].valid && info[1].valid) return newer(info[1].sequence, info[0].sequence) ? 1 : 0;
+  if (info[0].valid) return 0;
+  if (info[1].valid) return 1;
   return -1;
 }
 
 hal::Status FlashParamStore::load(std::span<std::uint8_t> out, std::size_t& length,
                                   std::uint32_t& sequence) noexcept {
   length = 0;
-  if (check_layout() != hal::Status::kOk)
-    return hal::Status::kInvalidArgument;
+  if (check_layout() != hal::Status::kOk) return hal::Status::kInvalidArgument;
   SlotInfo info[2];
   const int best = newest_valid(info);
-  if (best < 0)
-    return hal::Status::kNotFound;
+  if (best < 0) return hal::Status::kNotFound;
   const SlotInfo& b = info[best];
-  if (b.length > out.size())
-    return hal::Status::kOverflow;
+  if (b.length > out.size()) return hal::Status::kOverflow;
   const std::span<std::uint8_t> dst = out.first(b.length);
   if (flash_.read(slot_offset(static_cast<std::size_t>(best)) + kHeaderSize, dst) !=
       hal::Status::kOk) {
@@ -106,18 +96,15 @@ hal::Status FlashParamStore::load(std::span<std::uint8_t> out, std::size_t& leng
   }
   std::uint32_t crc = crc32_update(kCrc32Init, std::span<const std::uint8_t>(h.data() + 4, 12));
   crc = crc32_final(crc32_update(crc, dst));
-  if (crc != le32(h.data() + 16))
-    return hal::Status::kCorrupt;
+  if (crc != le32(h.data() + 16)) return hal::Status::kCorrupt;
   length = b.length;
   sequence = b.sequence;
   return hal::Status::kOk;
 }
 
 hal::Status FlashParamStore::store(std::span<const std::uint8_t> blob) noexcept {
-  if (check_layout() != hal::Status::kOk)
-    return hal::Status::kInvalidArgument;
-  if (blob.size() > max_blob_size())
-    return hal::Status::kOverflow;
+  if (check_layout() != hal::Status::kOk) return hal::Status::kInvalidArgument;
+  if (blob.size() > max_blob_size()) return hal::Status::kOverflow;
   SlotInfo info[2];
   const int best = newest_valid(info);
   const std::size_t target = best == 0 ? 1 : 0;
@@ -126,8 +113,7 @@ hal::Status FlashParamStore::store(std::span<const std::uint8_t> blob) noexcept 
 
   const std::size_t sector = flash_.sector_size();
   for (std::size_t s = 0; s < layout_.slot_size / sector; ++s) {
-    if (auto st = flash_.erase_sector(off / sector + s); st != hal::Status::kOk)
-      return st;
+    if (auto st = flash_.erase_sector(off / sector + s); st != hal::Status::kOk) return st;
   }
   std::array<std::uint8_t, kHeaderSize> h{};
   put32(h.data(), kMagic);
@@ -145,8 +131,7 @@ hal::Status FlashParamStore::store(std::span<const std::uint8_t> blob) noexcept 
     return st;
   }
   if (!blob.empty()) {
-    if (auto st = flash_.program(off + kHeaderSize, blob); st != hal::Status::kOk)
-      return st;
+    if (auto st = flash_.program(off + kHeaderSize, blob); st != hal::Status::kOk) return st;
   }
   if (auto st = flash_.program(off, std::span<const std::uint8_t>(h.data(), 4));
       st != hal::Status::kOk) {

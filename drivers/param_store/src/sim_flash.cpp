@@ -10,8 +10,7 @@ SimFlash::SimFlash(std::span<std::uint8_t> storage, std::size_t sector_size) noe
 }
 
 hal::Status SimFlash::read(std::size_t offset, std::span<std::uint8_t> out) const noexcept {
-  if (!powered_)
-    return hal::Status::kPowerLoss;
+  if (!powered_) return hal::Status::kPowerLoss;
   if (offset > storage_.size() || out.size() > storage_.size() - offset) {
     return hal::Status::kInvalidArgument;
   }
@@ -21,11 +20,9 @@ hal::Status SimFlash::read(std::size_t offset, std::span<std::uint8_t> out) cons
 }
 
 hal::Status SimFlash::erase_sector(std::size_t sector_index) noexcept {
-  if (!powered_)
-    return hal::Status::kPowerLoss;
+  if (!powered_) return hal::Status::kPowerLoss;
   const std::size_t n_sectors = storage_.size() / sector_size_;
-  if (sector_index >= n_sectors)
-    return hal::Status::kInvalidArgument;
+  if (sector_index >= n_sectors) return hal::Status::kInvalidArgument;
   std::size_t bytes = sector_size_;
   bool cut = false;
   if (erase_cut_armed_) {
@@ -48,8 +45,7 @@ hal::Status SimFlash::erase_sector(std::size_t sector_index) noexcept {
 }
 
 hal::Status SimFlash::program(std::size_t offset, std::span<const std::uint8_t> data) noexcept {
-  if (!powered_)
-    return hal::Status::kPowerLoss;
+  if (!powered_) return hal::Status::kPowerLoss;
   if (offset > storage_.size() || data.size() > storage_.size() - offset) {
     return hal::Status::kInvalidArgument;
   }
@@ -62,8 +58,7 @@ hal::Status SimFlash::program(std::size_t offset, std::span<const std::uint8_t> 
     }
     storage_[offset + i] &= data[i];
     ++bytes_programmed_;
-    if (program_cut_armed_)
-      --program_budget_;
+    if (program_cut_armed_) --program_budget_;
   }
   return hal::Status::kOk;
 }

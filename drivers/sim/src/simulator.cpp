@@ -36,10 +36,8 @@ std::uint64_t stream_seed(std::uint64_t seed, std::uint64_t stream) noexcept {
 
 // 0 -> 0, 1 -> 1, zero slope at both ends.
 double smoothstep(double x) noexcept {
-  if (x <= 0.0)
-    return 0.0;
-  if (x >= 1.0)
-    return 1.0;
+  if (x <= 0.0) return 0.0;
+  if (x >= 1.0) return 1.0;
   return x * x * (3.0 - 2.0 * x);
 }
 
@@ -171,8 +169,7 @@ ScenarioConfig scenario_survey() noexcept {
 }
 
 double survey_duration_s(const SurveyConfig& s, std::uint32_t lines) noexcept {
-  if (lines == 0)
-    return s.manoeuvre_s;
+  if (lines == 0) return s.manoeuvre_s;
   return s.manoeuvre_s + static_cast<double>(lines) * s.line_s +
          static_cast<double>(lines - 1) * s.turn_s;
 }
@@ -219,15 +216,13 @@ Vec3<double> Simulator::true_field_at(double t_s) const noexcept {
     h += config_.diurnal_nT *
          std::sin(kTwoPi * (t_s - config_.start_time_s) / config_.diurnal_period_s);
   }
-  if (t_s >= config_.step_time_s)
-    h += config_.step_nT;
+  if (t_s >= config_.step_time_s) h += config_.step_nT;
   return h;
 }
 
 Mat3<double> Simulator::true_attitude_at(double t_s, double* theta_deg) const noexcept {
   const double t_rel = t_s - config_.start_time_s;
-  if (theta_deg != nullptr)
-    *theta_deg = kNaN;
+  if (theta_deg != nullptr) *theta_deg = kNaN;
   switch (config_.pattern) {
     case AttitudePattern::kRandomAttitudes: {
       const std::int64_t k = step_index(t_rel, config_.rate_hz, config_.samples_per_attitude);
@@ -237,8 +232,7 @@ Mat3<double> Simulator::true_attitude_at(double t_s, double* theta_deg) const no
       const std::int64_t k = step_index(t_rel, config_.rate_hz, config_.samples_per_attitude);
       const double theta =
           config_.turntable_start_deg + static_cast<double>(k) * config_.turntable_step_deg;
-      if (theta_deg != nullptr)
-        *theta_deg = theta;
+      if (theta_deg != nullptr) *theta_deg = theta;
       return config_.turntable_mount * core::rot_z(deg(theta));
     }
     case AttitudePattern::kSurvey:
@@ -274,8 +268,7 @@ Mat3<double> Simulator::add_ins_noise(const Mat3<double>& r, Gaussian* g) const 
   // Noise on each of the INS's Euler angles (Li convention), as in Li et al. 2023 sec. 4.
   const double s = deg(config_.ins_noise_deg);
   const double n1 = g->next(), n2 = g->next(), n3 = g->next();  // always drawn: fixed stream use
-  if (s == 0.0)
-    return r;
+  if (s == 0.0) return r;
   core::LiEuler<double> e = core::li_from_r_bn(r);
   e.alpha += s * n1;
   e.beta += s * n2;
@@ -284,14 +277,12 @@ Mat3<double> Simulator::add_ins_noise(const Mat3<double>& r, Gaussian* g) const 
 }
 
 Mat3<double> Simulator::ins_attitude_at(double t_s) noexcept {
-  if (!config_.ins)
-    return nan_matrix();
+  if (!config_.ins) return nan_matrix();
   return add_ins_noise(true_attitude_at(t_s - config_.ins_latency_s), &ins_external_noise_);
 }
 
 bool Simulator::next(SimSample* out) noexcept {
-  if (index_ >= config_.num_samples || !(config_.rate_hz > 0.0))
-    return false;
+  if (index_ >= config_.num_samples || !(config_.rate_hz > 0.0)) return false;
   SimSample s;
   s.index = index_;
   s.t_s = config_.start_time_s + static_cast<double>(index_) / config_.rate_hz;

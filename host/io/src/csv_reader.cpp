@@ -30,8 +30,7 @@ constexpr Quantity kQuantities[] = {
 
 const Quantity* find_quantity(std::string_view q) {
   for (const Quantity& k : kQuantities) {
-    if (k.name == q)
-      return &k;
+    if (k.name == q) return &k;
   }
   return nullptr;
 }
@@ -74,12 +73,10 @@ std::string_view trim(std::string_view s) {
 }
 
 bool iequals(std::string_view a, std::string_view b) {
-  if (a.size() != b.size())
-    return false;
+  if (a.size() != b.size()) return false;
   for (std::size_t i = 0; i < a.size(); ++i) {
     const char x = (a[i] >= 'A' && a[i] <= 'Z') ? static_cast<char>(a[i] - 'A' + 'a') : a[i];
-    if (x != b[i])
-      return false;
+    if (x != b[i]) return false;
   }
   return true;
 }
@@ -99,8 +96,7 @@ CsvReader::CsvReader(const std::string& path, CsvReaderOptions options)
   in_.rdbuf()->pubsetbuf(buffer_.get(), kReadBuffer);
   line_.reserve(4096);  // typical rows never reallocate: next() stays allocation-free
   in_.open(path, std::ios::in | std::ios::binary);
-  if (!in_.is_open())
-    throw CsvError(path_, 0, "", "cannot open file for reading");
+  if (!in_.is_open()) throw CsvError(path_, 0, "", "cannot open file for reading");
   parse_header();
 }
 
@@ -113,16 +109,14 @@ bool CsvReader::read_line() {
     if (t.empty() || t.front() == '#') {
       if (names_.empty() && !t.empty()) {
         std::string_view c = t.substr(1);
-        if (!c.empty() && c.front() == ' ')
-          c.remove_prefix(1);
+        if (!c.empty() && c.front() == ' ') c.remove_prefix(1);
         comments_.emplace_back(c);
       }
       continue;
     }
     return true;
   }
-  if (in_.bad())
-    throw CsvError(path_, line_no_, "", "read error");
+  if (in_.bad()) throw CsvError(path_, line_no_, "", "read error");
   return false;
 }
 
@@ -170,8 +164,7 @@ void CsvReader::split() {
         ++i;
       fields_.push_back(trim(std::string_view(base + start, i - start)));
     }
-    if (i >= n)
-      break;
+    if (i >= n) break;
     ++i;  // the comma
   }
 }
@@ -184,8 +177,7 @@ void CsvReader::fail(std::size_t column, const std::string& message) const {
 }
 
 void CsvReader::parse_header() {
-  if (!read_line())
-    throw CsvError(path_, line_no_, "", "no header line (file is empty)");
+  if (!read_line()) throw CsvError(path_, line_no_, "", "no header line (file is empty)");
   split();
   fields_.reserve(fields_.size() + 8);
   names_.reserve(fields_.size());
@@ -195,8 +187,7 @@ void CsvReader::parse_header() {
   std::optional<Column> found[16];
   for (std::size_t c = 0; c < names_.size(); ++c) {
     const std::string& name = names_[c];
-    if (name.empty())
-      fail(c, "empty column name");
+    if (name.empty()) fail(c, "empty column name");
     for (std::size_t d = 0; d < c; ++d) {
       if (names_[d] == name)
         fail(c, "duplicate column name (also field " + std::to_string(d + 1) + ")");
@@ -207,8 +198,7 @@ void CsvReader::parse_header() {
     const std::string_view unit =
         us == std::string::npos ? std::string_view() : std::string_view(name).substr(us + 1);
     const Quantity* q = find_quantity(quantity);
-    if (q == nullptr)
-      continue;  // an extra column
+    if (q == nullptr) continue;  // an extra column
     double scale = 1.0;
     if (q->kind == Kind::kUnitless) {
       if (us != std::string::npos)
@@ -224,13 +214,11 @@ void CsvReader::parse_header() {
       }
     }
     const auto slot = static_cast<std::size_t>(q - kQuantities);
-    if (found[slot])
-      fail(c, "quantity " + std::string(quantity) + " appears twice");
+    if (found[slot]) fail(c, "quantity " + std::string(quantity) + " appears twice");
     found[slot] = Column{c, scale};
   }
   auto require = [&](std::size_t slot, const char* name) {
-    if (!found[slot])
-      throw CsvError(path_, line_no_, name, "missing required column");
+    if (!found[slot]) throw CsvError(path_, line_no_, name, "missing required column");
     return *found[slot];
   };
   col_t_ = require(0, "t_s");
@@ -253,8 +241,7 @@ void CsvReader::parse_header() {
     std::size_t present = 0;
     for (std::size_t k = 0; k < s.count; ++k)
       present += found[s.first + k] ? 1U : 0U;
-    if (present == 0)
-      continue;
+    if (present == 0) continue;
     if (present != s.count) {
       throw CsvError(path_, line_no_, "",
                      std::string("incomplete attitude columns: need all of ") + s.names);
@@ -273,8 +260,7 @@ void CsvReader::parse_header() {
 
 double CsvReader::number_at(std::size_t index, double scale) const {
   const std::string_view s = trim(fields_[index]);
-  if (s.empty())
-    fail(index, "empty field (write nan for a missing value)");
+  if (s.empty()) fail(index, "empty field (write nan for a missing value)");
   std::string_view body = s;
   if (body.front() == '+') {
     body.remove_prefix(1);
@@ -282,10 +268,8 @@ double CsvReader::number_at(std::size_t index, double scale) const {
       fail(index, "malformed number '" + std::string(s) + "'");
   }
   std::string_view mag = body;
-  if (!mag.empty() && mag.front() == '-')
-    mag.remove_prefix(1);
-  if (iequals(mag, "nan"))
-    return kNaN;
+  if (!mag.empty() && mag.front() == '-') mag.remove_prefix(1);
+  if (iequals(mag, "nan")) return kNaN;
   double v = 0.0;
   const auto [ptr, ec] = std::from_chars(body.data(), body.data() + body.size(), v);
   if (ec == std::errc::result_out_of_range)
@@ -305,8 +289,7 @@ double CsvReader::number(const Column& c) const {
 
 bool CsvReader::next(CsvRecord* out) {
   have_row_ = false;
-  if (!read_line())
-    return false;
+  if (!read_line()) return false;
   split();
   if (fields_.size() != names_.size()) {
     throw CsvError(path_, line_no_, "",
@@ -317,8 +300,7 @@ bool CsvReader::next(CsvRecord* out) {
   CsvRecord r;
   r.line = line_no_;
   r.t_s = number(col_t_);
-  if (!std::isfinite(r.t_s))
-    fail(col_t_.index, "time must be a finite number");
+  if (!std::isfinite(r.t_s)) fail(col_t_.index, "time must be a finite number");
   r.m_nT = core::Vec3<double>(number(col_hx_), number(col_hy_), number(col_hz_));
   if (r.m_nT.array().isNaN().any()) {
     r.dropout = true;
@@ -326,15 +308,13 @@ bool CsvReader::next(CsvRecord* out) {
   }
   if (col_f_) {
     const double f = number(*col_f_);
-    if (!std::isnan(f))
-      r.f_nT = f;
+    if (!std::isnan(f)) r.f_nT = f;
   } else if (options_.f_nT) {
     r.f_nT = *options_.f_nT;
   }
   if (col_theta_) {
     const double th = number(*col_theta_);
-    if (!std::isnan(th))
-      r.theta_deg = th;
+    if (!std::isnan(th)) r.theta_deg = th;
   }
   if (attitude_ != AttitudeColumns::kNone) {
     const std::size_t n = attitude_ == AttitudeColumns::kQuaternion ? 4 : 3;
@@ -373,8 +353,7 @@ bool CsvReader::next(CsvRecord* out) {
 
 std::optional<std::size_t> CsvReader::column_index(std::string_view name) const noexcept {
   for (std::size_t c = 0; c < names_.size(); ++c) {
-    if (names_[c] == name)
-      return c;
+    if (names_[c] == name) return c;
   }
   return std::nullopt;
 }

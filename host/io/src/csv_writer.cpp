@@ -24,10 +24,8 @@ constexpr std::size_t kFlushThreshold = 1 << 20;
 
 std::string directory_of(const std::string& path) {
   const std::size_t slash = path.rfind('/');
-  if (slash == std::string::npos)
-    return ".";
-  if (slash == 0)
-    return "/";
+  if (slash == std::string::npos) return ".";
+  if (slash == 0) return "/";
   return path.substr(0, slash);
 }
 
@@ -36,12 +34,10 @@ void append_double(std::string* out, double v) {
     out->append("nan");
     return;
   }
-  if (!std::isfinite(v))
-    throw std::domain_error("CSV writer: cannot write a non-finite value");
+  if (!std::isfinite(v)) throw std::domain_error("CSV writer: cannot write a non-finite value");
   char buf[32];
   const auto [ptr, ec] = std::to_chars(buf, buf + sizeof(buf), v);  // shortest round trip
-  if (ec != std::errc())
-    throw std::domain_error("CSV writer: cannot format a number");
+  if (ec != std::errc()) throw std::domain_error("CSV writer: cannot format a number");
   out->append(buf, ptr);
 }
 
@@ -62,8 +58,7 @@ AtomicFile::AtomicFile(std::string path) : path_(std::move(path)) {
     tmp_path_ =
         path_ + ".tmp." + std::to_string(::getpid()) + "." + std::to_string(counter.fetch_add(1));
     fd_ = ::open(tmp_path_.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0666);
-    if (fd_ < 0 && errno != EEXIST)
-      break;
+    if (fd_ < 0 && errno != EEXIST) break;
   }
   if (fd_ < 0) {
     tmp_path_.clear();
@@ -74,10 +69,8 @@ AtomicFile::AtomicFile(std::string path) : path_(std::move(path)) {
 
 AtomicFile::~AtomicFile() {
   if (!committed_) {
-    if (fd_ >= 0)
-      ::close(fd_);
-    if (!tmp_path_.empty())
-      ::unlink(tmp_path_.c_str());
+    if (fd_ >= 0) ::close(fd_);
+    if (!tmp_path_.empty()) ::unlink(tmp_path_.c_str());
   }
 }
 
@@ -87,8 +80,7 @@ void AtomicFile::flush_buffer() {
   while (left > 0) {
     const ssize_t n = ::write(fd_, p, left);
     if (n < 0) {
-      if (errno == EINTR)
-        continue;
+      if (errno == EINTR) continue;
       throw_errno("cannot write " + tmp_path_);
     }
     p += n;
@@ -98,19 +90,15 @@ void AtomicFile::flush_buffer() {
 }
 
 void AtomicFile::write(std::string_view data) {
-  if (committed_ || fd_ < 0)
-    throw std::logic_error("AtomicFile::write after commit: " + path_);
+  if (committed_ || fd_ < 0) throw std::logic_error("AtomicFile::write after commit: " + path_);
   buffer_.append(data);
-  if (buffer_.size() >= kFlushThreshold)
-    flush_buffer();
+  if (buffer_.size() >= kFlushThreshold) flush_buffer();
 }
 
 void AtomicFile::commit() {
-  if (committed_)
-    return;
+  if (committed_) return;
   flush_buffer();
-  if (::fsync(fd_) != 0)
-    throw_errno("cannot fsync " + tmp_path_);
+  if (::fsync(fd_) != 0) throw_errno("cannot fsync " + tmp_path_);
   if (::close(fd_) != 0) {
     fd_ = -1;
     throw_errno("cannot close " + tmp_path_);
@@ -130,8 +118,7 @@ void AtomicFile::commit() {
 CsvWriter::CsvWriter(std::string path, std::vector<std::string> columns,
                      const std::vector<std::string>& comment_lines)
     : file_(std::move(path)), columns_(std::move(columns)) {
-  if (columns_.empty())
-    throw std::invalid_argument("CSV writer: no columns");
+  if (columns_.empty()) throw std::invalid_argument("CSV writer: no columns");
   std::string head;
   for (const std::string& c : comment_lines) {
     head += "# ";
@@ -142,8 +129,7 @@ CsvWriter::CsvWriter(std::string path, std::vector<std::string> columns,
     if (columns_[i].find_first_of(",\"\n\r") != std::string::npos) {
       throw std::invalid_argument("CSV writer: column name needs no quoting: " + columns_[i]);
     }
-    if (i > 0)
-      head += ',';
+    if (i > 0) head += ',';
     head += columns_[i];
   }
   head += '\n';
@@ -158,8 +144,7 @@ void CsvWriter::write_row(std::span<const double> values) {
   }
   row_.clear();
   for (std::size_t i = 0; i < values.size(); ++i) {
-    if (i > 0)
-      row_ += ',';
+    if (i > 0) row_ += ',';
     append_double(&row_, values[i]);
   }
   row_ += '\n';

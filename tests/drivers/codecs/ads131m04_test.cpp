@@ -148,8 +148,7 @@ class FakeAdc final : public hal::SpiBus, public hal::DataReadyLine {
  public:
   hal::Status transfer(std::span<const std::uint8_t> tx,
                        std::span<std::uint8_t> rx) noexcept override {
-    if (tx.size() != kFrameBytes || rx.size() != kFrameBytes)
-      return hal::Status::kInvalidArgument;
+    if (tx.size() != kFrameBytes || rx.size() != kFrameBytes) return hal::Status::kInvalidArgument;
     if (fail_next) {
       fail_next = false;
       return hal::Status::kBusError;
@@ -167,8 +166,7 @@ class FakeAdc final : public hal::SpiBus, public hal::DataReadyLine {
       next_response = kResetResponse;
     } else if ((cmd & 0xE000) == 0x6000) {
       const auto addr = static_cast<std::uint8_t>((cmd >> 7) & 0x3F);
-      if (addr == kRegGain1)
-        gain1 = decode_word16(tx.data() + 3);
+      if (addr == kRegGain1) gain1 = decode_word16(tx.data() + 3);
       next_response = static_cast<std::uint16_t>(0x4000 | (cmd & 0x1FFF));
     } else {
       next_response = status;
@@ -176,8 +174,7 @@ class FakeAdc final : public hal::SpiBus, public hal::DataReadyLine {
     return hal::Status::kOk;
   }
   hal::Status wait_edge(hal::EdgeEvent& ev, std::uint32_t) noexcept override {
-    if (edges.empty())
-      return hal::Status::kTimeout;
+    if (edges.empty()) return hal::Status::kTimeout;
     ev = edges.front();
     edges.pop_front();
     return hal::Status::kOk;

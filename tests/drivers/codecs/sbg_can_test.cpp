@@ -175,8 +175,7 @@ TEST(SbgCan, CorruptTruncatedAndOutOfOrderFrames) {
 class FakeCan final : public hal::CanBus {
  public:
   hal::Status receive(hal::CanFrame& out, std::uint32_t) noexcept override {
-    if (next >= frames.size())
-      return hal::Status::kTimeout;
+    if (next >= frames.size()) return hal::Status::kTimeout;
     out = frames[next++];
     return hal::Status::kOk;
   }

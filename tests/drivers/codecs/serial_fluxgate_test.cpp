@@ -116,8 +116,7 @@ TEST(AsciiLine, ResynchronisesAfterRandomGarbage) {
   magvec::test::AllocationScope scope;
   for (const std::uint8_t b : stream) {
     hal::MagnetometerSample s;
-    if (d.push(b, 0, s) == hal::Status::kOk)
-      got.push_back(s.m_nT);  // reserved: no allocation
+    if (d.push(b, 0, s) == hal::Status::kOk) got.push_back(s.m_nT);  // reserved: no allocation
   }
   EXPECT_EQ(scope.count(), 0u);
   ASSERT_EQ(got.size(), truth.size());
@@ -196,8 +195,7 @@ TEST(Hmr2300, ResynchronisesAfterRandomGarbage) {
   // Every true record appears, in order (subsequence match).
   std::size_t j = 0;
   for (const auto& g : got) {
-    if (j < truth.size() && g == truth[j])
-      ++j;
+    if (j < truth.size() && g == truth[j]) ++j;
   }
   EXPECT_EQ(j, truth.size());
   // A false record needs a random 0Dh at the one position where the decoder looks (p = 1/256 per

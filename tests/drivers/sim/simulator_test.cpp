@@ -181,8 +181,7 @@ TEST(Simulator, InsAngleNoiseHasConfiguredStandardDeviationPerAngle) {
   int n = 0;
   while (sim.next(&s)) {
     const core::LiEuler<double> t = core::li_from_r_bn(s.r_bn_true);
-    if (std::abs(t.beta) > 80 * kDeg)
-      continue;  // near gimbal lock alpha/gamma are ill-defined
+    if (std::abs(t.beta) > 80 * kDeg) continue;  // near gimbal lock alpha/gamma are ill-defined
     const core::LiEuler<double> i = core::li_from_r_bn(s.r_bn_ins);
     const double d[3] = {core::wrap_pi(i.alpha - t.alpha), i.beta - t.beta,
                          core::wrap_pi(i.gamma - t.gamma)};
@@ -290,8 +289,7 @@ TEST(Simulator, FieldChangesDiurnalAndStep) {
   int step_flags = 0;
   while (sim.next(&s)) {
     Vec3<double> h = cfg.h_n_nT + cfg.diurnal_nT * std::sin(2 * core::kPi<double> * s.t_s / 40.0);
-    if (s.t_s >= 50.0)
-      h += cfg.step_nT;
+    if (s.t_s >= 50.0) h += cfg.step_nT;
     EXPECT_LT((s.h_n_true_nT - h).norm(), 1e-9);
     EXPECT_NEAR(s.f_nT, h.norm(), 1e-9);
     if (s.flags & kFlagFieldStep) {

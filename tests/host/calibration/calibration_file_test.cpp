@@ -71,10 +71,12 @@ TEST(CalibrationFile, RejectsBadFilesWithClearErrors) {
   expect_error(bad_w.dump(), "'W' holds a non-number");
   bad_w["W"] = {1, 2, 3};
   expect_error(bad_w.dump(), "'W' must be an array of 9");
-  expect_error(R"({"schema":"magvec-calibration/1","W":[0,0,0,0,0,0,0,0,0],"o_nT":[0,0,0],"Rm_quat":[1,0,0,0]})",
-               "singular");
-  expect_error(R"({"schema":"magvec-calibration/1","W":[1,0,0,0,1,0,0,0,1],"o_nT":[0,0,0],"Rm_quat":[2,0,0,0]})",
-               "unit quaternion");
+  expect_error(
+      R"({"schema":"magvec-calibration/1","W":[0,0,0,0,0,0,0,0,0],"o_nT":[0,0,0],"Rm_quat":[1,0,0,0]})",
+      "singular");
+  expect_error(
+      R"({"schema":"magvec-calibration/1","W":[1,0,0,0,1,0,0,0,1],"o_nT":[0,0,0],"Rm_quat":[2,0,0,0]})",
+      "unit quaternion");
   nlohmann::json edited = nlohmann::json::parse(good);
   edited["ge"]["Cinv"][0] = 50.0;  // a hand edit of a derived block
   expect_error(edited.dump(), "disagrees");
@@ -91,7 +93,8 @@ TEST(CalibrationFile, AtomicWriteReplacesAndLeavesNoTemporaries) {
   write_calibration_file(path, second);
   EXPECT_EQ(read_calibration_file(path).quality.verdict, "insufficient_coverage");
   int files = 0;
-  for ([[maybe_unused]] const auto& e : std::filesystem::directory_iterator(dir)) ++files;
+  for ([[maybe_unused]] const auto& e : std::filesystem::directory_iterator(dir))
+    ++files;
   EXPECT_EQ(files, 1);
   EXPECT_THROW((void)read_calibration_file((dir / "missing.json").string()), CalibrationFileError);
   std::filesystem::remove_all(dir);

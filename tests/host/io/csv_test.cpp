@@ -47,10 +47,8 @@ class Csv : public ::testing::Test {
       while (r.next(&rec)) {
       }
     } catch (const CsvError& e) {
-      if (line != nullptr)
-        *line = e.line();
-      if (column != nullptr)
-        *column = e.column();
+      if (line != nullptr) *line = e.line();
+      if (column != nullptr) *column = e.column();
       EXPECT_EQ(e.file(), p);
       EXPECT_NE(std::string(e.what()).find(p), std::string::npos);
       return e.what();

@@ -134,7 +134,9 @@ class Hmr2300BinaryDecoder {
 
  private:
   static constexpr std::size_t kHistory = 2 * kRecordBytes;
-  std::uint8_t at(std::uint64_t pos) const noexcept { return history_[static_cast<std::size_t>(pos % kHistory)]; }
+  std::uint8_t at(std::uint64_t pos) const noexcept {
+    return history_[static_cast<std::size_t>(pos % kHistory)];
+  }
   bool plausible(std::uint64_t end_pos) const noexcept;  // record ending at end_pos (its 0Dh)
   void make_sample(std::uint64_t end_pos, std::uint64_t t_us,
                    hal::MagnetometerSample& out) noexcept;
@@ -166,16 +168,14 @@ class SerialFluxgate final : public hal::MagnetometerSource {
   hal::Status read(hal::MagnetometerSample& out, std::uint32_t timeout_us) noexcept override {
     // Bounded work per call: at most kMaxChunks reads (the first may wait, the rest poll).
     for (int attempt = 0; attempt < kMaxChunks; ++attempt) {
-      if (take_from_buffer(out))
-        return hal::Status::kOk;
+      if (take_from_buffer(out)) return hal::Status::kOk;
       std::size_t n = 0;
       const hal::Status s = port_.read(buf_, n, attempt == 0 ? timeout_us : 0);
       if (s != hal::Status::kOk && s != hal::Status::kTimeout && s != hal::Status::kNoData) {
         ++bus_errors_;
         return s;
       }
-      if (n == 0)
-        return attempt == 0 ? hal::Status::kTimeout : hal::Status::kNoData;
+      if (n == 0) return attempt == 0 ? hal::Status::kTimeout : hal::Status::kNoData;
       const std::uint64_t now = clock_.now_us();
       rx_t_us_ = now > latency_us_ ? now - latency_us_ : 0;
       pos_ = 0;
@@ -193,12 +193,10 @@ class SerialFluxgate final : public hal::MagnetometerSource {
  private:
   bool take_from_buffer(hal::MagnetometerSample& out) noexcept {
     if constexpr (requires(Decoder d, hal::MagnetometerSample s) { d.pending(s); }) {
-      if (decoder_.pending(out))
-        return true;
+      if (decoder_.pending(out)) return true;
     }
     while (pos_ < len_) {
-      if (decoder_.push(buf_[pos_++], rx_t_us_, out) == hal::Status::kOk)
-        return true;
+      if (decoder_.push(buf_[pos_++], rx_t_us_, out) == hal::Status::kOk) return true;
     }
     return false;
   }

@@ -79,8 +79,7 @@ struct AttitudeQuery {
 template <typename Scalar>
 Quat<Scalar> slerp_unit(const Quat<Scalar>& q0, const Quat<Scalar>& q1, Scalar f) noexcept {
   Quat<Scalar> d = q0.conjugate() * q1;
-  if (d.w() < Scalar(0))
-    d.coeffs() = -d.coeffs();
+  if (d.w() < Scalar(0)) d.coeffs() = -d.coeffs();
   const Scalar vnorm = d.vec().norm();
   const Scalar angle = Scalar(2) * std::atan2(vnorm, d.w());
   Quat<Scalar> step;
@@ -121,8 +120,7 @@ class AttitudeBuffer {
     const std::uint64_t newest = time_at(size_ - 1);
     if (t_us > newest) {
       // Keep the hemisphere continuous so that stored neighbours are on the same side.
-      if (q.dot(quat_at(size_ - 1)) < Scalar(0))
-        q.coeffs() = -q.coeffs();
+      if (q.dot(quat_at(size_ - 1)) < Scalar(0)) q.coeffs() = -q.coeffs();
       push_back(t_us, q);
       ++counters_.appended;
       return AttitudeInsert::kAppended;
@@ -153,8 +151,7 @@ class AttitudeBuffer {
     // Shift [pos, size_) up by one.
     for (std::size_t i = size_; i > pos; --i)
       entries_[phys(i)] = entries_[phys(i - 1)];
-    if (q.dot(entries_[phys(pos + 1)].q) < Scalar(0))
-      q.coeffs() = -q.coeffs();
+    if (q.dot(entries_[phys(pos + 1)].q) < Scalar(0)) q.coeffs() = -q.coeffs();
     entries_[phys(pos)] = Entry{t_us, q};
     ++size_;
     ++counters_.reordered;
@@ -163,8 +160,7 @@ class AttitudeBuffer {
 
   AttitudeQuery<Scalar> at(std::uint64_t t_us) const noexcept {
     AttitudeQuery<Scalar> r;
-    if (size_ == 0)
-      return r;
+    if (size_ == 0) return r;
     const std::uint64_t oldest = time_at(0);
     const std::uint64_t newest = time_at(size_ - 1);
     if (t_us < oldest) {

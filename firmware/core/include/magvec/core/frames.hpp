@@ -102,8 +102,7 @@ template <typename Scalar>
 Quat<Scalar> quat_from_r_bn(const Mat3<Scalar>& r_bn) noexcept {
   Quat<Scalar> q(Mat3<Scalar>(r_bn.transpose()));
   q.normalize();
-  if (q.w() < Scalar(0))
-    q.coeffs() = -q.coeffs();
+  if (q.w() < Scalar(0)) q.coeffs() = -q.coeffs();
   return q;
 }
 
@@ -112,10 +111,8 @@ template <typename Scalar>
 Scalar wrap_pi(Scalar a) noexcept {
   const Scalar two_pi = Scalar(2) * kPi<Scalar>;
   a = std::fmod(a, two_pi);
-  if (a <= -kPi<Scalar>)
-    a += two_pi;
-  if (a > kPi<Scalar>)
-    a -= two_pi;
+  if (a <= -kPi<Scalar>) a += two_pi;
+  if (a > kPi<Scalar>) a -= two_pi;
   return a;
 }
 

@@ -15,6 +15,7 @@
 #include "magvec/core/compensator.hpp"
 #include "magvec/host/io/csv.hpp"
 #include "sim_csv.hpp"
+#include "stats.hpp"
 
 namespace magvec::host::cli {
 namespace {
@@ -26,41 +27,6 @@ struct DemoOptions {
   double ins_noise_deg = 0.015;
   double dropout_rate = 0.001;
 };
-
-// Running mean / SD (Welford) and RMS of a series.
-class Stats {
- public:
-  void add(double x) noexcept {
-    ++n_;
-    const double d = x - mean_;
-    mean_ += d / static_cast<double>(n_);
-    m2_ += d * (x - mean_);
-    sum_sq_ += x * x;
-  }
-  double mean() const noexcept { return mean_; }
-  double sd() const noexcept { return n_ > 1 ? std::sqrt(m2_ / static_cast<double>(n_ - 1)) : 0.0; }
-  double rms() const noexcept {
-    return n_ > 0 ? std::sqrt(sum_sq_ / static_cast<double>(n_)) : 0.0;
-  }
-  std::uint64_t count() const noexcept { return n_; }
-
- private:
-  std::uint64_t n_ = 0;
-  double mean_ = 0, m2_ = 0, sum_sq_ = 0;
-};
-
-// Fixed-point number, right-aligned in 14 characters (table cells).
-std::string num(double v, int decimals) {
-  char buf[64];
-  std::snprintf(buf, sizeof(buf), "%14.*f", decimals, v);
-  return buf;
-}
-// Fixed-point number without padding (prose).
-std::string fixed(double v, int decimals) {
-  char buf[64];
-  std::snprintf(buf, sizeof(buf), "%.*f", decimals, v);
-  return buf;
-}
 
 void run(const DemoOptions& o) {
   namespace fs = std::filesystem;

@@ -1,0 +1,88 @@
+// Fixed-capacity store of calibration samples (raw magnetometer reading, scalar reference field,
+// INS attitude) for the batch estimators of Li et al. 2023 (ellipsoid refinement, misalignment,
+// one-step fit, ERRATA 000-2..6). Plain arrays, no heap: a Capacity of 256 fits a Cortex-M4F.
+// Also holds the normalisation (centre and scale) every batch solver works in: fields are divided
+// by the reference magnitude so float32 keeps precision (DESIGN.md "Core").
+#pragma once
+
+#include <array>
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+
+#include "magvec/core/frames.hpp"
+#include "magvec/core/types.hpp"
+
+namespace magvec::core {
+
+// x = (m - centre) / scale: raw nT -> dimensionless, O(1) numbers.
+template <typename Scalar>
+struct Normalization {
+  Vec3<Scalar> centre = Vec3<Scalar>::Zero();
+  Scalar scale{1};
+
+  Vec3<Scalar> to_unit(const Vec3<Scalar>& m) const noexcept { return (m - centre) / scale; }
+  Vec3<Scalar> to_nt(const Vec3<Scalar>& x) const noexcept { return x * scale + centre; }
+};
+
+// Sample flags.
+enum SampleFlag : std::uint8_t {
+  kSampleHasAttitude = 1U << 0,  // r_bn is valid
+  kSampleOutlier = 1U << 1,      // rejected by the robust (median/MAD) screen
+};
+
+template <typename Scalar>
+struct StoredSample {
+  std::array<Scalar, 3> m{};  // raw reading [nT]
+  Scalar f{0};                // scalar reference field [nT]
+  std::array<Scalar, 4> q{};  // R_bn as a unit quaternion (w, x, y, z)
+  std::uint8_t flags{0};
+
+  Vec3<Scalar> raw() const noexcept { return Vec3<Scalar>(m[0], m[1], m[2]); }
+  bool has_attitude() const noexcept { return (flags & kSampleHasAttitude) != 0; }
+  bool outlier() const noexcept { return (flags & kSampleOutlier) != 0; }
+  Mat3<Scalar> r_bn() const noexcept {
+    return Quat<Scalar>(q[0], q[1], q[2], q[3]).toRotationMatrix();
+  }
+};
+
+// Append-only store; samples beyond Capacity are refused (and counted by the caller).
+template <typename Scalar, std::size_t Capacity>
+class SampleStore {
+  static_assert(Capacity > 0, "SampleStore needs a positive capacity");
+
+ public:
+  static constexpr std::size_t kCapacity = Capacity;
+
+  void clear() noexcept { size_ = 0; }
+  std::size_t size() const noexcept { return size_; }
+  bool full() const noexcept { return size_ == Capacity; }
+
+  // Stores a finite sample; returns false when full. r_bn may be null (no attitude).
+  bool push(const Vec3<Scalar>& m, Scalar f, const Mat3<Scalar>* r_bn) noexcept {
+    if (size_ == Capacity) return false;
+    StoredSample<Scalar>& s = samples_[size_];
+    s.m = {m(0), m(1), m(2)};
+    s.f = f;
+    s.flags = 0;
+    if (r_bn != nullptr) {
+      Quat<Scalar> q(*r_bn);
+      q.normalize();
+      s.q = {q.w(), q.x(), q.y(), q.z()};
+      s.flags = kSampleHasAttitude;
+    } else {
+      s.q = {Scalar(1), Scalar(0), Scalar(0), Scalar(0)};
+    }
+    ++size_;
+    return true;
+  }
+
+  const StoredSample<Scalar>& operator[](std::size_t i) const noexcept { return samples_[i]; }
+  StoredSample<Scalar>& operator[](std::size_t i) noexcept { return samples_[i]; }
+
+ private:
+  std::array<StoredSample<Scalar>, Capacity> samples_{};
+  std::size_t size_{0};
+};
+
+}  // namespace magvec::core

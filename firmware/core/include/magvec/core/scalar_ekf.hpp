@@ -472,10 +472,9 @@ class ScalarEkf {
     d_(0) += c * a(0) * a(0);
   }
 
-  // Bierman's scalar update of U, D for measurement row h and variance r. Returns the unnormalised
-  // gain k (K = k / s) and the innovation variance s = h P h^T + r.
-  void bierman(const StateVec& h_row, Scalar r, StateVec* k_out, Scalar* s_out) noexcept {
-    const StateVec f = u_.transpose() * h_row;
+  // Bierman's scalar update of U, D for a measurement with f = U^T h^T and variance r. Returns the
+  // unnormalised gain k (K = k / s) and the innovation variance s = h P h^T + r.
+  void bierman(const StateVec& f, Scalar r, StateVec* k_out, Scalar* s_out) noexcept {
     const StateVec v = d_.cwiseProduct(f);
     StateVec k = StateVec::Zero();
     Scalar alpha = r + f(0) * v(0);
@@ -497,13 +496,7 @@ class ScalarEkf {
     *s_out = alpha;
   }
 
-  Scalar innovation_variance(const StateVec& h_row, Scalar r) const noexcept {
-    const StateVec f = u_.transpose() * h_row;
-    return r + f.dot(d_.cwiseProduct(f));
-  }
-
-  // ---- the filter step
-  // ---------------------------------------------------------------------------
+  // ---- the filter step ---------------------------------------------------------------------
   EkfStatus filter_step(const Vec3<Scalar>& m, Scalar fn, Scalar z) noexcept {
     const Linearisation l0 = linearise(m, fn);
     // A finite but absurd sample can overflow the prediction: reject it before touching anything.
@@ -517,7 +510,8 @@ class ScalarEkf {
       if (qk > 0)
         add_diagonal_noise(k, qk);
     }
-    const Scalar s0 = innovation_variance(l0.h_row, l0.r);
+    const StateVec f0 = u_.transpose() * l0.h_row;
+    const Scalar s0 = l0.r + f0.dot(d_.cwiseProduct(f0));
     const Scalar nu0 = z - l0.h;
     if (!(std::isfinite(s0) && s0 > 0 && std::isfinite(nu0)))
       return reinitialise(EkfResetReason::kNonFiniteState);
@@ -527,23 +521,27 @@ class ScalarEkf {
       ++window_gated_;
       return end_of_window_check(EkfStatus::kGated);
     }
-    const StateVec x_prior = x_;
-    const StateMat u_prior = u_;
-    const StateVec d_prior = d_;
-    Linearisation l = l0;
-    for (int it = 0; it < cfg_.iterations; ++it) {
-      if (it > 0) {
+    StateVec k;
+    Scalar s;
+    if (cfg_.iterations == 1) {
+      bierman(f0, l0.r, &k, &s);
+      x_ += k * (nu0 / s);
+    } else {
+      const StateVec x_prior = x_;
+      const StateMat u_prior = u_;
+      const StateVec d_prior = d_;
+      bierman(f0, l0.r, &k, &s);
+      x_ += k * (nu0 / s);
+      for (int it = 1; it < cfg_.iterations; ++it) {
+        // Iterated EKF: x = x_prior + K_i (z - h(x_i) - H_i (x_prior - x_i)), with K_i and the
+        // posterior covariance from the prior covariance and H_i linearised at the iterate x_i.
+        const Linearisation l = linearise(m, fn);
         u_ = u_prior;
         d_ = d_prior;
-        l = linearise(m, fn);  // at the current iterate x_
+        bierman(u_.transpose() * l.h_row, l.r, &k, &s);
+        const Scalar nu = z - l.h - l.h_row.dot(x_prior - x_);
+        x_ = x_prior + k * (nu / s);
       }
-      StateVec k;
-      Scalar s;
-      bierman(l.h_row, l.r, &k, &s);
-      // Iterated EKF: x = x_prior + K (z - h(x_i) - H (x_prior - x_i)); plain EKF when x_i =
-      // x_prior.
-      const Scalar nu = z - l.h - l.h_row.dot(x_prior - x_);
-      x_ = x_prior + k * (nu / s);
     }
     if (!x_.allFinite() || !d_.allFinite() || !u_.allFinite())
       return reinitialise(EkfResetReason::kNonFiniteState);
@@ -587,8 +585,7 @@ class ScalarEkf {
     return EkfStatus::kReinitialised;
   }
 
-  // ---- initial fit over the buffered samples
-  // -----------------------------------------------------
+  // ---- initial fit over the buffered samples -----------------------------------------------
   bool algebraic_fit(const Vec3<Scalar>& center) noexcept {
     scalar_ekf_detail::QuadricAccumulator<Scalar> acc;
     acc.clear();

@@ -119,4 +119,4 @@ BENCHMARK(BM_OneStepPass)->Unit(benchmark::kMicrosecond);
 
 }  // namespace
 
-BENCHMARK_MAIN();
+

@@ -90,7 +90,7 @@ void BM_OneStep(benchmark::State& state) {
     benchmark::DoNotOptimize(r);
     state.counters["iterations"] = r.quality.iterations;
   }
-  state.SetItemsProcessed(static_cast<std::int64_t>(state.iterations() * N));
+  state.SetItemsProcessed(state.iterations() * static_cast<std::int64_t>(N));
 }
 BENCHMARK(BM_OneStep<60>)->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_OneStep<6000>)->Unit(benchmark::kMillisecond);
@@ -118,7 +118,7 @@ void BM_OneStepPass(benchmark::State& state) {
                              4.5e-8, AttitudeNoiseModel::kLiEuler, &n, &g, &chi2, &fsum, &count);
     benchmark::DoNotOptimize(chi2);
   }
-  state.SetItemsProcessed(static_cast<std::int64_t>(state.iterations() * kN));
+  state.SetItemsProcessed(state.iterations() * static_cast<std::int64_t>(kN));
 }
 BENCHMARK(BM_OneStepPass)->Unit(benchmark::kMicrosecond);
 

@@ -58,7 +58,8 @@ BENCHMARK(BM_EllipsoidAccumulate);
 void BM_EllipsoidAccumulateFloat(benchmark::State& state) {
   const Data d = make_data(1024);
   std::vector<Vec3<float>> mf;
-  for (const auto& m : d.m) mf.push_back(m.cast<float>());
+  for (const auto& m : d.m)
+    mf.push_back(m.cast<float>());
   EllipsoidFit<float> fit;
   std::size_t i = 0;
   for (auto _ : state) {
@@ -71,8 +72,10 @@ BENCHMARK(BM_EllipsoidAccumulateFloat);
 void BM_EllipsoidAlgebraicSolve(benchmark::State& state) {
   const Data d = make_data(60);
   EllipsoidFit<double> fit;
-  for (const auto& m : d.m) fit.add(m, d.f);
-  for (auto _ : state) benchmark::DoNotOptimize(fit.solve());
+  for (const auto& m : d.m)
+    fit.add(m, d.f);
+  for (auto _ : state)
+    benchmark::DoNotOptimize(fit.solve());
 }
 BENCHMARK(BM_EllipsoidAlgebraicSolve);
 
@@ -80,13 +83,14 @@ template <std::size_t N>
 void BM_OneStep(benchmark::State& state) {
   const Data d = make_data(N);
   auto cal = std::make_unique<BatchCalibrator<double, N>>();
-  for (std::size_t i = 0; i < N; ++i) cal->add_sample(d.m[i], d.f, d.r[i]);
+  for (std::size_t i = 0; i < N; ++i)
+    cal->add_sample(d.m[i], d.f, d.r[i]);
   for (auto _ : state) {
     const BatchResult<double> r = cal->solve(BatchMethod::kOneStep);
     benchmark::DoNotOptimize(r);
     state.counters["iterations"] = r.quality.iterations;
   }
-  state.SetItemsProcessed(static_cast<std::int64_t>(state.iterations() * N));
+  state.SetItemsProcessed(state.iterations() * static_cast<std::int64_t>(N));
 }
 BENCHMARK(BM_OneStep<60>)->Unit(benchmark::kMicrosecond);
 BENCHMARK(BM_OneStep<6000>)->Unit(benchmark::kMillisecond);
@@ -97,7 +101,8 @@ void BM_OneStepPass(benchmark::State& state) {
   constexpr std::size_t kN = 6000;
   const Data d = make_data(kN);
   auto st = std::make_unique<SampleStore<double, kN>>();
-  for (std::size_t i = 0; i < kN; ++i) st->push(d.m[i], d.f, &d.r[i]);
+  for (std::size_t i = 0; i < kN; ++i)
+    st->push(d.m[i], d.f, &d.r[i]);
   Normalization<double> norm;
   norm.scale = d.f;
   const Vec3<double> dir = Vec3<double>(-4053, 25022, -47374).normalized();
@@ -108,12 +113,12 @@ void BM_OneStepPass(benchmark::State& state) {
   double chi2 = 0, fsum = 0;
   std::size_t count = 0;
   for (auto _ : state) {
-    OneStepFit<double>::pass(*st, norm, Vec3<double>::Ones(), Vec3<double>::Zero(), Vec3<double>::Zero(),
-                             Vec3<double>::Zero(), dir, t1, t2, 0.3 / d.f, 4.5e-8, AttitudeNoiseModel::kLiEuler, &n,
-                             &g, &chi2, &fsum, &count);
+    OneStepFit<double>::pass(*st, norm, Vec3<double>::Ones(), Vec3<double>::Zero(),
+                             Vec3<double>::Zero(), Vec3<double>::Zero(), dir, t1, t2, 0.3 / d.f,
+                             4.5e-8, AttitudeNoiseModel::kLiEuler, &n, &g, &chi2, &fsum, &count);
     benchmark::DoNotOptimize(chi2);
   }
-  state.SetItemsProcessed(static_cast<std::int64_t>(state.iterations() * kN));
+  state.SetItemsProcessed(state.iterations() * static_cast<std::int64_t>(kN));
 }
 BENCHMARK(BM_OneStepPass)->Unit(benchmark::kMicrosecond);
 

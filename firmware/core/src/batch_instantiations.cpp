@@ -23,30 +23,30 @@ template class OneStepFit<double>;
 template class SineSweep<float>;
 template class SineSweep<double>;
 
-template EllipsoidSolution<float> refine_ellipsoid_geometric(const SampleStore<float, kMcuBatchCapacity>&,
-                                                             const Normalization<float>&,
-                                                             const EllipsoidSolution<float>&, int) noexcept;
-template EllipsoidSolution<double> refine_ellipsoid_geometric(const SampleStore<double, kMcuBatchCapacity>&,
-                                                              const Normalization<double>&,
-                                                              const EllipsoidSolution<double>&, int) noexcept;
+template EllipsoidSolution<float> refine_ellipsoid_geometric(
+    const SampleStore<float, kMcuBatchCapacity>&, const Normalization<float>&,
+    const EllipsoidSolution<float>&, int) noexcept;
+template EllipsoidSolution<double> refine_ellipsoid_geometric(
+    const SampleStore<double, kMcuBatchCapacity>&, const Normalization<double>&,
+    const EllipsoidSolution<double>&, int) noexcept;
 template MisalignmentSolution<float> plane_compression(const SampleStore<float, kMcuBatchCapacity>&,
                                                        const Mat3<float>&, const Vec3<float>&,
                                                        const MisalignmentOptions<float>&) noexcept;
-template MisalignmentSolution<double> plane_compression(const SampleStore<double, kMcuBatchCapacity>&,
-                                                        const Mat3<double>&, const Vec3<double>&,
-                                                        const MisalignmentOptions<double>&) noexcept;
-template MisalignmentSolution<float> joint_rm_hn(const SampleStore<float, kMcuBatchCapacity>&, const Mat3<float>&,
-                                                 const Vec3<float>&, const MisalignmentOptions<float>&) noexcept;
+template MisalignmentSolution<double> plane_compression(
+    const SampleStore<double, kMcuBatchCapacity>&, const Mat3<double>&, const Vec3<double>&,
+    const MisalignmentOptions<double>&) noexcept;
+template MisalignmentSolution<float> joint_rm_hn(const SampleStore<float, kMcuBatchCapacity>&,
+                                                 const Mat3<float>&, const Vec3<float>&,
+                                                 const MisalignmentOptions<float>&) noexcept;
 template MisalignmentSolution<double> joint_rm_hn(const SampleStore<double, kMcuBatchCapacity>&,
                                                   const Mat3<double>&, const Vec3<double>&,
                                                   const MisalignmentOptions<double>&) noexcept;
-template OneStepSolution<float> OneStepFit<float>::solve(const SampleStore<float, kMcuBatchCapacity>&,
-                                                         const Normalization<float>&, const LiParams<float>&,
-                                                         const Vec3<float>&, const OneStepOptions<float>&) noexcept;
-template OneStepSolution<double> OneStepFit<double>::solve(const SampleStore<double, kMcuBatchCapacity>&,
-                                                           const Normalization<double>&, const LiParams<double>&,
-                                                           const Vec3<double>&,
-                                                           const OneStepOptions<double>&) noexcept;
+template OneStepSolution<float> OneStepFit<float>::solve(
+    const SampleStore<float, kMcuBatchCapacity>&, const Normalization<float>&,
+    const LiParams<float>&, const Vec3<float>&, const OneStepOptions<float>&) noexcept;
+template OneStepSolution<double> OneStepFit<double>::solve(
+    const SampleStore<double, kMcuBatchCapacity>&, const Normalization<double>&,
+    const LiParams<double>&, const Vec3<double>&, const OneStepOptions<double>&) noexcept;
 template SineSolution<float> solve_sine(const SineSweep<float>&, const SineSweep<float>&,
                                         const SineFitOptions<float>&) noexcept;
 template SineSolution<double> solve_sine(const SineSweep<double>&, const SineSweep<double>&,

@@ -17,10 +17,12 @@ using Calibrator = BatchCalibrator<double, 1024>;
 TEST(BatchCalibrator, LevelOnlyDataGetsTheUnobservableHeadingVerdict) {
   std::mt19937_64 rng(21);
   auto cal = std::make_unique<Calibrator>();
-  for (const Sample& s : simulate(from_li(paper_li()), paper_h_n(), level_attitudes(72), 0.3, 0.015 * kDeg, rng)) {
+  for (const Sample& s :
+       simulate(from_li(paper_li()), paper_h_n(), level_attitudes(72), 0.3, 0.015 * kDeg, rng)) {
     cal->add_sample(s.m, s.f, s.r_meas);
   }
-  for (BatchMethod m : {BatchMethod::kOneStep, BatchMethod::kJoint, BatchMethod::kPlaneCompression}) {
+  for (BatchMethod m :
+       {BatchMethod::kOneStep, BatchMethod::kJoint, BatchMethod::kPlaneCompression}) {
     EXPECT_EQ(cal->solve(m).verdict, Verdict::kUnobservableHeadingMisalignment);
   }
 }
@@ -29,7 +31,8 @@ TEST(BatchCalibrator, TooFewAndNonFiniteSamplesAreCounted) {
   auto cal = std::make_unique<Calibrator>();
   const Mat3<double> r = Mat3<double>::Identity();
   EXPECT_EQ(cal->add_sample(Vec3<double>(NAN, 1, 1), 50000, r), AddStatus::kSkippedNonFinite);
-  EXPECT_EQ(cal->add_sample(Vec3<double>(1, 1, 1), NAN, r), AddStatus::kSkippedNonFinite);  // no default F
+  EXPECT_EQ(cal->add_sample(Vec3<double>(1, 1, 1), NAN, r),
+            AddStatus::kSkippedNonFinite);  // no default F
   Mat3<double> bad = r;
   bad(0, 0) = NAN;
   EXPECT_EQ(cal->add_sample(Vec3<double>(1, 1, 1), 50000, bad), AddStatus::kSkippedNonFinite);
@@ -62,7 +65,8 @@ TEST(BatchCalibrator, PlanarSweepHasInsufficientCoverageOrIsRefused) {
   // All attitudes about a single horizontal axis: h_s sweeps one circle only.
   std::mt19937_64 rng(23);
   std::vector<Mat3<double>> att;
-  for (int i = 0; i < 40; ++i) att.push_back(r_bn_from_li(LiEuler<double>{0.3, 0, (9.0 * i) * kDeg}));
+  for (int i = 0; i < 40; ++i)
+    att.push_back(r_bn_from_li(LiEuler<double>{0.3, 0, (9.0 * i) * kDeg}));
   auto cal = std::make_unique<Calibrator>();
   for (const Sample& s : simulate(from_li(paper_li()), paper_h_n(), att, 0.3, 0.015 * kDeg, rng)) {
     cal->add_sample(s.m, s.f, s.r_meas);
@@ -77,7 +81,8 @@ TEST(BatchCalibrator, SpikesAndDropoutsAreRejectedAndCounted) {
   double clean_ss = 0, dirty_ss = 0, clean_int = 0, dirty_int = 0;
   for (int seed = 0; seed < kSeeds; ++seed) {
     std::mt19937_64 rng(500 + static_cast<unsigned>(seed));
-    const auto data = simulate(from_li(t), paper_h_n(), random_attitudes(kN, rng), 0.3, 0.015 * kDeg, rng);
+    const auto data =
+        simulate(from_li(t), paper_h_n(), random_attitudes(kN, rng), 0.3, 0.015 * kDeg, rng);
     auto clean = std::make_unique<Calibrator>();
     auto dirty = std::make_unique<Calibrator>();
     std::size_t spikes = 0, drops = 0;
@@ -114,11 +119,13 @@ TEST(BatchCalibrator, SpikesAndDropoutsAreRejectedAndCounted) {
 
 TEST(BatchCalibrator, AddAndSolveDoNotAllocate) {
   std::mt19937_64 rng(24);
-  const auto data = simulate(from_li(paper_li()), paper_h_n(), random_attitudes(60, rng), 0.3, 0.015 * kDeg, rng);
+  const auto data =
+      simulate(from_li(paper_li()), paper_h_n(), random_attitudes(60, rng), 0.3, 0.015 * kDeg, rng);
   auto cal = std::make_unique<Calibrator>();
   magvec::test::AllocationScope scope;
   Eigen::internal::set_is_malloc_allowed(false);
-  for (const Sample& s : data) cal->add_sample(s.m, s.f, s.r_meas);
+  for (const Sample& s : data)
+    cal->add_sample(s.m, s.f, s.r_meas);
   const BatchResult<double> r = cal->solve();
   Eigen::internal::set_is_malloc_allowed(true);
   EXPECT_EQ(scope.count(), 0U);

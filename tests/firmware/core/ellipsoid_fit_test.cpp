@@ -73,7 +73,8 @@ TEST(EllipsoidFit, GeometricRefinementKeepsExactSolutionAndImprovesNoisyOne) {
     st.push(s.m, s.f, nullptr);
     fit.add(s.m, s.f);
   }
-  const EllipsoidSolution<double> g = refine_ellipsoid_geometric(st, fit.normalization(), fit.solve());
+  const EllipsoidSolution<double> g =
+      refine_ellipsoid_geometric(st, fit.normalization(), fit.solve());
   ASSERT_EQ(g.status, EllipsoidStatus::kOk);
   EXPECT_LT((g.g - m.g()).norm() / m.g().norm(), 1e-9);
   EXPECT_LT((g.o - t.kof).norm(), 1e-9 * paper_h_n().norm());
@@ -85,7 +86,8 @@ TEST(EllipsoidFit, FloatMatchesDoubleWithinTheNoise) {
   const LiParams<double> t = paper_li();
   EllipsoidFit<float> ff;
   EllipsoidFit<double> fd;
-  for (const Sample& s : simulate(from_li(t), paper_h_n(), random_attitudes(300, rng), 0.3, 0, rng)) {
+  for (const Sample& s :
+       simulate(from_li(t), paper_h_n(), random_attitudes(300, rng), 0.3, 0, rng)) {
     ff.add(s.m.cast<float>(), static_cast<float>(s.f));
     fd.add(s.m, s.f);
   }
@@ -99,11 +101,13 @@ TEST(EllipsoidFit, FloatMatchesDoubleWithinTheNoise) {
 
 TEST(EllipsoidFit, AccumulateAndSolveDoNotAllocate) {
   std::mt19937_64 rng(16);
-  const auto data = simulate(from_li(paper_li()), paper_h_n(), random_attitudes(60, rng), 0.3, 0, rng);
+  const auto data =
+      simulate(from_li(paper_li()), paper_h_n(), random_attitudes(60, rng), 0.3, 0, rng);
   EllipsoidFit<double> fit;
   magvec::test::AllocationScope scope;
   Eigen::internal::set_is_malloc_allowed(false);
-  for (const Sample& s : data) fit.add(s.m, s.f);
+  for (const Sample& s : data)
+    fit.add(s.m, s.f);
   const EllipsoidSolution<double> e = fit.solve();
   Eigen::internal::set_is_malloc_allowed(true);
   EXPECT_EQ(scope.count(), 0U);

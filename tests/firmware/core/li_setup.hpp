@@ -29,7 +29,9 @@ inline LiParams<double> paper_li() {
   p.rm_rad = Vec3<double>(5.7, 2.1, 3.5) * kDeg;
   return p;
 }
-inline Vec3<double> paper_h_n() { return {-4053.0, 25022.0, -47374.0}; }
+inline Vec3<double> paper_h_n() {
+  return {-4053.0, 25022.0, -47374.0};
+}
 
 // Uniformly distributed random rotation (Haar), as R_bn.
 inline Mat3<double> random_rotation(std::mt19937_64& rng) {
@@ -41,7 +43,8 @@ inline Mat3<double> random_rotation(std::mt19937_64& rng) {
 
 // Li Euler angles of the true attitudes with independent noise on each angle.
 inline Mat3<double> with_ins_noise(const Mat3<double>& r, double sigma_rad, std::mt19937_64& rng) {
-  if (sigma_rad == 0) return r;
+  if (sigma_rad == 0)
+    return r;
   std::normal_distribution<double> n(0, sigma_rad);
   LiEuler<double> e = li_from_r_bn(r);
   e.alpha += n(rng);
@@ -69,7 +72,8 @@ inline std::vector<Sample> simulate(const SensorModel<double>& model, const Vec3
 
 inline std::vector<Mat3<double>> random_attitudes(int n, std::mt19937_64& rng) {
   std::vector<Mat3<double>> a;
-  for (int i = 0; i < n; ++i) a.push_back(random_rotation(rng));
+  for (int i = 0; i < n; ++i)
+    a.push_back(random_rotation(rng));
   return a;
 }
 
@@ -88,16 +92,19 @@ inline std::vector<Mat3<double>> box_attitudes() {
 // Level platform turning through headings only.
 inline std::vector<Mat3<double>> level_attitudes(int n) {
   std::vector<Mat3<double>> a;
-  for (int i = 0; i < n; ++i) a.push_back(r_bn_from_li(LiEuler<double>{(360.0 * i / n) * kDeg, 0, 0}));
+  for (int i = 0; i < n; ++i)
+    a.push_back(r_bn_from_li(LiEuler<double>{(360.0 * i / n) * kDeg, 0, 0}));
   return a;
 }
 
 inline double sd(const std::vector<double>& v) {
   double mean = 0;
-  for (double x : v) mean += x;
+  for (double x : v)
+    mean += x;
   mean /= static_cast<double>(v.size());
   double ss = 0;
-  for (double x : v) ss += (x - mean) * (x - mean);
+  for (double x : v)
+    ss += (x - mean) * (x - mean);
   return std::sqrt(ss / static_cast<double>(v.size() - 1));
 }
 

@@ -16,7 +16,8 @@ using Store = SampleStore<double, 512>;
 
 std::unique_ptr<Store> store_of(const std::vector<Sample>& data) {
   auto st = std::make_unique<Store>();
-  for (const Sample& s : data) EXPECT_TRUE(st->push(s.m, s.f, &s.r_meas));
+  for (const Sample& s : data)
+    EXPECT_TRUE(st->push(s.m, s.f, &s.r_meas));
   return st;
 }
 

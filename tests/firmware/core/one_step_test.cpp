@@ -15,13 +15,16 @@ namespace {
 using namespace test_setup;
 using Calibrator = BatchCalibrator<double, 1024>;
 
-std::unique_ptr<Calibrator> fill(const std::vector<Sample>& data, const BatchConfig<double>& cfg = {}) {
+std::unique_ptr<Calibrator> fill(const std::vector<Sample>& data,
+                                 const BatchConfig<double>& cfg = {}) {
   auto cal = std::make_unique<Calibrator>(cfg);
-  for (const Sample& s : data) EXPECT_EQ(cal->add_sample(s.m, s.f, s.r_meas), AddStatus::kAccepted);
+  for (const Sample& s : data)
+    EXPECT_EQ(cal->add_sample(s.m, s.f, s.r_meas), AddStatus::kAccepted);
   return cal;
 }
 
-void expect_exact(const BatchResult<double>& r, const LiParams<double>& t, const Vec3<double>& h_n) {
+void expect_exact(const BatchResult<double>& r, const LiParams<double>& t,
+                  const Vec3<double>& h_n) {
   const double f = h_n.norm();
   EXPECT_LT((r.li.ks - t.ks).cwiseAbs().maxCoeff(), 1e-9);
   EXPECT_LT((r.li.o_rad - t.o_rad).cwiseAbs().maxCoeff(), 1e-9);
@@ -35,7 +38,8 @@ TEST(OneStep, NoiseFreeLiSetupIsRecoveredExactly) {
   const LiParams<double> t = paper_li();
   const auto data = simulate(from_li(t), paper_h_n(), random_attitudes(60, rng), 0, 0, rng);
   auto cal = fill(data);
-  for (BatchMethod m : {BatchMethod::kOneStep, BatchMethod::kJoint, BatchMethod::kPlaneCompression}) {
+  for (BatchMethod m :
+       {BatchMethod::kOneStep, BatchMethod::kJoint, BatchMethod::kPlaneCompression}) {
     const BatchResult<double> r = cal->solve(m);
     ASSERT_EQ(r.verdict, Verdict::kOk) << verdict_name(r.verdict);
     expect_exact(r, t, paper_h_n());
@@ -66,7 +70,8 @@ TEST(OneStep, MonteCarloReachesTheStatisticalFloor) {
   int intensity_n = 0;
   for (int seed = 0; seed < kSeeds; ++seed) {
     std::mt19937_64 rng(1000 + static_cast<unsigned>(seed));
-    const auto data = simulate(truth, paper_h_n(), random_attitudes(60, rng), 0.3, 0.015 * kDeg, rng);
+    const auto data =
+        simulate(truth, paper_h_n(), random_attitudes(60, rng), 0.3, 0.015 * kDeg, rng);
     auto cal = fill(data);
     const BatchResult<double> r = cal->solve(BatchMethod::kOneStep);
     ASSERT_EQ(r.verdict, Verdict::kOk) << verdict_name(r.verdict) << " seed " << seed;
@@ -88,8 +93,9 @@ TEST(OneStep, MonteCarloReachesTheStatisticalFloor) {
   for (int k = 0; k < 3; ++k) {
     const double s = sd(err[k]) / kDeg, s_pc = sd(err_pc[k]) / kDeg;
     const double predicted = std::sqrt(sigma_ss[k] / kSeeds) / kDeg;
-    std::printf("angle %d: one-step SD %.5f deg (predicted 1-sigma %.5f), plane compression SD %.5f deg\n", k,
-                s, predicted, s_pc);
+    std::printf(
+        "angle %d: one-step SD %.5f deg (predicted 1-sigma %.5f), plane compression SD %.5f deg\n",
+        k, s, predicted, s_pc);
     EXPECT_NEAR(predicted / s, 1.0, 0.2) << "reported sigma must match the scatter";
     worst = std::max(worst, s);
     worst_pc = std::max(worst_pc, s_pc);

@@ -33,7 +33,8 @@ Vec3<double> field_enu(double decl) {
 
 // Mounting of the XZ sweep: body components of Up.
 Mat3<double> xz_mount(const SineParams<double>& p, SineFixture fixture) {
-  if (fixture == SineFixture::kHousingY) return rot_x(kPi<double> / 2);  // housing +y up
+  if (fixture == SineFixture::kHousingY)
+    return rot_x(kPi<double> / 2);  // housing +y up
   const Vec3<double> zm(std::cos(p.beta_rad) * std::sin(p.gamma_rad),
                         std::sin(p.beta_rad) * std::sin(p.gamma_rad), std::cos(p.gamma_rad));
   const Vec3<double> n = Vec3<double>::UnitX().cross(zm).normalized();
@@ -42,8 +43,8 @@ Mat3<double> xz_mount(const SineParams<double>& p, SineFixture fixture) {
   return r0;
 }
 
-void sweep(const SineParams<double>& p, SineFixture fixture, double sigma, double dir, std::mt19937_64& rng,
-           SineSweep<double>* xy, SineSweep<double>* xz) {
+void sweep(const SineParams<double>& p, SineFixture fixture, double sigma, double dir,
+           std::mt19937_64& rng, SineSweep<double>* xy, SineSweep<double>* xz) {
   const SensorModel<double> m = from_sine(p);
   const Vec3<double> h = field_enu(0.4);
   std::normal_distribution<double> n(0, sigma);
@@ -104,7 +105,8 @@ TEST(SineFit, MonteCarloAlphaScatterMatchesErrata) {
       alpha.push_back((s.params.alpha_rad - t.alpha_rad) / kDeg);
       beta.push_back((s.params.beta_rad - t.beta_rad) / kDeg);
     }
-    std::printf("noise %.0f nT: alpha SD %.5f deg, beta SD %.4f deg\n", sigmas[c], sd(alpha), sd(beta));
+    std::printf("noise %.0f nT: alpha SD %.5f deg, beta SD %.4f deg\n", sigmas[c], sd(alpha),
+                sd(beta));
     EXPECT_LT(sd(alpha), 1.3 * expected[c]);
     EXPECT_GT(sd(alpha), expected[c] / 1.3);
   }

@@ -30,9 +30,9 @@ namespace magvec::core {
 
 enum class EllipsoidStatus : std::uint8_t {
   kOk,
-  kTooFewSamples,    // fewer than kMinSamples usable samples
-  kNotAnEllipsoid,   // fitted quadric is not an ellipsoid (G not positive definite)
-  kIllConditioned,   // normal matrix numerically singular (data on a plane, a ring, ...)
+  kTooFewSamples,   // fewer than kMinSamples usable samples
+  kNotAnEllipsoid,  // fitted quadric is not an ellipsoid (G not positive definite)
+  kIllConditioned,  // normal matrix numerically singular (data on a plane, a ring, ...)
   kNotConverged,
 };
 
@@ -44,7 +44,7 @@ struct EllipsoidSolution {
   Vec3<Scalar> o = Vec3<Scalar>::Zero();      // offset Kof [nT]
   LiParams<Scalar> li{};                      // ks, O, Kof (rm_rad stays zero)
   Scalar rcond{0};                            // reciprocal condition of the scaled normal matrix
-  Scalar rms{0};       // algebraic: RMS of e_i / 2 [normalised]; geometric: RMS of |h_s| - F [nT]
+  Scalar rms{0};  // algebraic: RMS of e_i / 2 [normalised]; geometric: RMS of |h_s| - F [nT]
   int iterations{0};
 
   SensorModel<Scalar> model() const noexcept {
@@ -74,11 +74,14 @@ Scalar scaled_rcond(const Mat<Scalar, N, N>& a, Vec<Scalar, N>* weakest = nullpt
   }
   const Mat<Scalar, N, N> s = d.asDiagonal() * a * d.asDiagonal();
   const Eigen::SelfAdjointEigenSolver<Mat<Scalar, N, N>> es(s);
-  if (es.info() != Eigen::Success) return Scalar(0);
+  if (es.info() != Eigen::Success)
+    return Scalar(0);
   const Scalar lmax = es.eigenvalues()(N - 1);
   const Scalar lmin = es.eigenvalues()(0);
-  if (weakest != nullptr) *weakest = es.eigenvectors().col(0);
-  if (!(lmax > Scalar(0))) return Scalar(0);
+  if (weakest != nullptr)
+    *weakest = es.eigenvectors().col(0);
+  if (!(lmax > Scalar(0)))
+    return Scalar(0);
   return lmin > Scalar(0) ? lmin / lmax : Scalar(0);
 }
 
@@ -91,11 +94,12 @@ Mat3<Scalar> sym_from6(const Vec<Scalar, 6>& v) noexcept {
 
 // Li decomposition of G (ERRATA 000-1); fills w, li; false when G^-1 is not positive definite.
 template <typename Scalar>
-bool decompose_g(const Mat3<Scalar>& g, const Vec3<Scalar>& o, EllipsoidSolution<Scalar>* out) noexcept {
+bool decompose_g(const Mat3<Scalar>& g, const Vec3<Scalar>& o,
+                 EllipsoidSolution<Scalar>* out) noexcept {
   Mat3<Scalar> ksko;
   LiParams<Scalar> li;
-  if (!g.allFinite() || li_scale_and_angles<Scalar>(g.inverse(), &li.ks, &li.o_rad, &ksko) !=
-                            ConversionStatus::kOk) {
+  if (!g.allFinite() ||
+      li_scale_and_angles<Scalar>(g.inverse(), &li.ks, &li.o_rad, &ksko) != ConversionStatus::kOk) {
     return false;
   }
   li.kof = o;
@@ -139,7 +143,8 @@ class EllipsoidFit {
   // Adds one reading m [nT] with its reference field f [nT]. Refuses (returns false) non-finite
   // input or a non-positive field; the accumulator is then unchanged.
   bool add(const Vec3<Scalar>& m, Scalar f) noexcept {
-    if (!m.allFinite() || !std::isfinite(f) || !(f > Scalar(0))) return false;
+    if (!m.allFinite() || !std::isfinite(f) || !(f > Scalar(0)))
+      return false;
     if (!has_norm_) {
       norm_.centre = m;
       norm_.scale = f;
@@ -157,7 +162,8 @@ class EllipsoidFit {
 
   EllipsoidSolution<Scalar> solve(int max_iterations = 50) const noexcept {
     EllipsoidSolution<Scalar> out;
-    if (n_ < kMinSamples) return out;
+    if (n_ < kMinSamples)
+      return out;
     const Accumulator s = s_.template selfadjointView<Eigen::Upper>();
     // (1) Homogeneous quadric: smallest eigenvector of the 10x10 scatter block.
     const Mat<Scalar, kCoeffs, kCoeffs> m = s.template topLeftCorner<kCoeffs, kCoeffs>();
@@ -174,10 +180,12 @@ class EllipsoidFit {
     }
     out.status = EllipsoidStatus::kNotAnEllipsoid;
     const Eigen::LLT<Mat3<Scalar>> llt(g);
-    if (llt.info() != Eigen::Success) return out;
+    if (llt.info() != Eigen::Success)
+      return out;
     Vec3<Scalar> u = Scalar(-0.5) * llt.solve(Vec3<Scalar>(q.template segment<3>(6)));
     const Scalar r2 = u.dot(g * u) - q(9);
-    if (!(r2 > Scalar(0))) return out;
+    if (!(r2 > Scalar(0)))
+      return out;
     const Scalar mean_f2 = s(9, 10) / s(9, 9);
     g *= mean_f2 / r2;
 
@@ -195,9 +203,11 @@ class EllipsoidFit {
       h = d.transpose() * s * d;
       const Vec<Scalar, kParams> grad = d.transpose() * (s * th);
       const Eigen::LDLT<Mat<Scalar, kParams, kParams>> ldlt(h);
-      if (ldlt.info() != Eigen::Success) break;
+      if (ldlt.info() != Eigen::Success)
+        break;
       Vec<Scalar, kParams> step = -ldlt.solve(grad);
-      if (!step.allFinite()) break;
+      if (!step.allFinite())
+        break;
       // Backtracking keeps the cost monotone when the start is far off.
       Scalar new_cost = algebraic_cost(s, p + step);
       int halvings = 0;
@@ -284,8 +294,8 @@ class EllipsoidFit {
 
 // Geometric refinement: Gauss-Newton on r_i = |W (m_i - o)| - F_i over the stored samples that are
 // not flagged as outliers, with A = W^-1 = Ks Ko parameterised by its six structural non-zeros
-// (rows x: (0,0); y: (1,0),(1,1),(1,2); z: (2,0),(2,2)) and the offset. Returns the refined solution
-// (status kNotConverged keeps the last iterate).
+// (rows x: (0,0); y: (1,0),(1,1),(1,2); z: (2,0),(2,2)) and the offset. Returns the refined
+// solution (status kNotConverged keeps the last iterate).
 template <typename Scalar, std::size_t Capacity>
 EllipsoidSolution<Scalar> refine_ellipsoid_geometric(const SampleStore<Scalar, Capacity>& store,
                                                      const Normalization<Scalar>& norm,
@@ -295,7 +305,8 @@ EllipsoidSolution<Scalar> refine_ellipsoid_geometric(const SampleStore<Scalar, C
   constexpr int kAr[6] = {0, 1, 1, 1, 2, 2};
   constexpr int kAc[6] = {0, 0, 1, 2, 0, 2};
   EllipsoidSolution<Scalar> out = init;
-  if (init.status != EllipsoidStatus::kOk && init.status != EllipsoidStatus::kNotConverged) return out;
+  if (init.status != EllipsoidStatus::kOk && init.status != EllipsoidStatus::kNotConverged)
+    return out;
   Mat3<Scalar> a = init.w.inverse();
   Vec3<Scalar> u = norm.to_unit(init.o);
   const Scalar tol = detail::default_tolerance<Scalar>();
@@ -312,14 +323,17 @@ EllipsoidSolution<Scalar> refine_ellipsoid_geometric(const SampleStore<Scalar, C
     count = 0;
     for (std::size_t i = 0; i < store.size(); ++i) {
       const StoredSample<Scalar>& smp = store[i];
-      if (smp.outlier()) continue;
+      if (smp.outlier())
+        continue;
       const Vec3<Scalar> h = w * (norm.to_unit(smp.raw()) - u);
       const Scalar hn = h.norm();
-      if (!(hn > Scalar(0))) continue;
+      if (!(hn > Scalar(0)))
+        continue;
       const Scalar r = hn - smp.f / norm.scale;
       const Vec3<Scalar> v = w.transpose() * (h / hn);
       Vec<Scalar, kP> j;
-      for (int k = 0; k < 6; ++k) j(k) = -v(kAr[k]) * h(kAc[k]);
+      for (int k = 0; k < 6; ++k)
+        j(k) = -v(kAr[k]) * h(kAc[k]);
       j.template tail<3>() = -v;
       n.template selfadjointView<Eigen::Upper>().rankUpdate(j);
       g += j * r;
@@ -333,8 +347,10 @@ EllipsoidSolution<Scalar> refine_ellipsoid_geometric(const SampleStore<Scalar, C
     n = n.template selfadjointView<Eigen::Upper>();
     const Eigen::LDLT<Mat<Scalar, kP, kP>> ldlt(n);
     const Vec<Scalar, kP> step = -ldlt.solve(g);
-    if (ldlt.info() != Eigen::Success || !step.allFinite()) break;
-    for (int k = 0; k < 6; ++k) a(kAr[k], kAc[k]) += step(k);
+    if (ldlt.info() != Eigen::Success || !step.allFinite())
+      break;
+    for (int k = 0; k < 6; ++k)
+      a(kAr[k], kAc[k]) += step(k);
     u += step.template tail<3>();
     if (step.template lpNorm<Eigen::Infinity>() < tol) {
       converged = true;

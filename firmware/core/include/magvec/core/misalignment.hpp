@@ -1,8 +1,8 @@
 // Misalignment Rm between the INS body frame and the orthogonalised magnetometer frame, given the
 // sensor model (W, o) from the ellipsoid fit. Li et al. 2023 eq. (15)-(21) as corrected by ERRATA:
 //  * Plane compression (000-2, 000-3): f_i = (R_i e3)^T Rm^T h_s(i), the Up component of the
-//    calibrated field in the geographic frame; cost sum_{i<j} (f_i - f_j)^2 = N sum (f_i - mean f)^2,
-//    accumulated in one O(N) pass per Gauss-Newton iteration (O(1) memory).
+//    calibrated field in the geographic frame; cost sum_{i<j} (f_i - f_j)^2 = N sum (f_i - mean
+//    f)^2, accumulated in one O(N) pass per Gauss-Newton iteration (O(1) memory).
 //  * Joint fit (000-5): R_i^T Rm^T h_s(i) = h_n for all i, rotation + field vector, using all
 //    components (~1.5x more precise, insensitive to vertical-field changes; yields declination).
 // Rm = Ry(gm) Rx(bm) Rz(am) (Li eq. 3). Every h_s(i) is divided by its reference F_i, so a change
@@ -36,7 +36,8 @@ inline constexpr int kRmGamma = 2;
 
 // Rm(am, bm, gm) = Ry(gm) Rx(bm) Rz(am) and its partial derivatives.
 template <typename Scalar>
-Mat3<Scalar> li_rm_with_derivatives(const Vec3<Scalar>& ang, std::array<Mat3<Scalar>, 3>* d) noexcept {
+Mat3<Scalar> li_rm_with_derivatives(const Vec3<Scalar>& ang,
+                                    std::array<Mat3<Scalar>, 3>* d) noexcept {
   using std::cos;
   using std::sin;
   const Mat3<Scalar> rz = rot_z(ang(kRmAlpha)), rx = rot_x(ang(kRmBeta)), ry = rot_y(ang(kRmGamma));
@@ -74,7 +75,7 @@ enum class MisalignmentStatus : std::uint8_t {
 
 template <typename Scalar>
 struct MisalignmentOptions {
-  bool fix_heading = false;           // hold am at fixed_heading_rad (for level-only data)
+  bool fix_heading = false;  // hold am at fixed_heading_rad (for level-only data)
   Scalar fixed_heading_rad{0};
   Scalar max_sigma_rad = deg_to_rad(Scalar(0.5));  // weakest direction's 1-sigma limit
   // Floor of the per-sample residual SD [normalised, i.e. relative to F] used by the
@@ -91,7 +92,8 @@ struct MisalignmentSolution {
   bool has_h_n = false;
   Vec3<Scalar> h_n = Vec3<Scalar>::Zero();        // [nT] (joint fit; plane compression: mean)
   Vec3<Scalar> h_n_sigma = Vec3<Scalar>::Zero();  // [nT] (joint fit)
-  Vec3<Scalar> weak_axis_body = Vec3<Scalar>::Zero();  // body rotation axis of the weakest direction
+  Vec3<Scalar> weak_axis_body =
+      Vec3<Scalar>::Zero();  // body rotation axis of the weakest direction
   Scalar weak_sigma_rad{0};  // predicted 1-sigma along it
   Scalar residual_rms{0};    // normalised (relative to F)
   Scalar rcond{0};
@@ -103,7 +105,8 @@ namespace detail {
 
 // Calibrated field divided by its reference: h~ = W (m - o) / F (unit length when calibrated).
 template <typename Scalar>
-Vec3<Scalar> unit_field(const StoredSample<Scalar>& s, const Mat3<Scalar>& w, const Vec3<Scalar>& o) noexcept {
+Vec3<Scalar> unit_field(const StoredSample<Scalar>& s, const Mat3<Scalar>& w,
+                        const Vec3<Scalar>& o) noexcept {
   return w * (s.raw() - o) / s.f;
 }
 
@@ -122,27 +125,35 @@ bool rm_linear_start(const SampleStore<Scalar, Capacity>& store, const Mat3<Scal
   Vec<Scalar, 9> sum = Vec<Scalar, 9>::Zero();
   std::size_t n = 0;
   for (std::size_t i = 0; i < store.size(); ++i) {
-    if (!usable(store[i])) continue;
+    if (!usable(store[i]))
+      continue;
     const Vec3<Scalar> u = store[i].r_bn().col(2);
     const Vec3<Scalar> h = unit_field(store[i], w, o);
     Vec<Scalar, 9> a;
-    for (int r = 0; r < 3; ++r) a.template segment<3>(3 * r) = u(r) * h;
+    for (int r = 0; r < 3; ++r)
+      a.template segment<3>(3 * r) = u(r) * h;
     c.template selfadjointView<Eigen::Upper>().rankUpdate(a);
     sum += a;
     ++n;
   }
-  if (n < 9) return false;
+  if (n < 9)
+    return false;
   c = c.template selfadjointView<Eigen::Upper>();
   c -= sum * sum.transpose() / static_cast<Scalar>(n);
   const Eigen::SelfAdjointEigenSolver<Mat<Scalar, 9, 9>> es(c);
-  if (es.info() != Eigen::Success) return false;
-  if (!(es.eigenvalues()(0) < Scalar(1e-2) * es.eigenvalues()(1))) return false;
+  if (es.info() != Eigen::Success)
+    return false;
+  if (!(es.eigenvalues()(0) < Scalar(1e-2) * es.eigenvalues()(1)))
+    return false;
   Mat3<Scalar> x;
-  for (int r = 0; r < 3; ++r) x.row(r) = es.eigenvectors().col(0).template segment<3>(3 * r).transpose();
-  if (x.determinant() < Scalar(0)) x = -x;
+  for (int r = 0; r < 3; ++r)
+    x.row(r) = es.eigenvectors().col(0).template segment<3>(3 * r).transpose();
+  if (x.determinant() < Scalar(0))
+    x = -x;
   const Eigen::JacobiSVD<Mat3<Scalar>> svd(x, Eigen::ComputeFullU | Eigen::ComputeFullV);
   Mat3<Scalar> rot = svd.matrixU() * svd.matrixV().transpose();
-  if (rot.determinant() < Scalar(0)) return false;
+  if (rot.determinant() < Scalar(0))
+    return false;
   const LiEuler<Scalar> e = li_from_r_bn<Scalar>(Mat3<Scalar>(rot.transpose()));
   *ang = Vec3<Scalar>(e.alpha, e.beta, e.gamma);
   return ang->allFinite();
@@ -151,7 +162,8 @@ bool rm_linear_start(const SampleStore<Scalar, Capacity>& store, const Mat3<Scal
 // Observability of the active angle block of a (Schur-complemented) normal matrix.
 template <typename Scalar>
 void assess_angles(const Mat3<Scalar>& n_aa, Scalar sigma2, const Vec3<Scalar>& ang,
-                   const MisalignmentOptions<Scalar>& opt, MisalignmentSolution<Scalar>* out) noexcept {
+                   const MisalignmentOptions<Scalar>& opt,
+                   MisalignmentSolution<Scalar>* out) noexcept {
   const int first = opt.fix_heading ? 1 : 0;
   const int dim = 3 - first;
   Mat3<Scalar> a = n_aa;
@@ -169,7 +181,8 @@ void assess_angles(const Mat3<Scalar>& n_aa, Scalar sigma2, const Vec3<Scalar>& 
   const Scalar lmin = es.eigenvalues()(weakest);
   const Scalar lmax = es.eigenvalues()(2);
   out->rcond = (lmax > Scalar(0) && lmin > Scalar(0)) ? lmin / lmax : Scalar(0);
-  out->weak_sigma_rad = lmin > Scalar(0) ? std::sqrt(sigma2 / lmin) : std::numeric_limits<Scalar>::infinity();
+  out->weak_sigma_rad =
+      lmin > Scalar(0) ? std::sqrt(sigma2 / lmin) : std::numeric_limits<Scalar>::infinity();
   const Vec3<Scalar> v = es.eigenvectors().col(weakest);
   const Vec3<Scalar> axis = li_rm_axes_body(ang) * v;
   out->weak_axis_body = axis.norm() > Scalar(0) ? Vec3<Scalar>(axis.normalized()) : axis;
@@ -177,7 +190,8 @@ void assess_angles(const Mat3<Scalar>& n_aa, Scalar sigma2, const Vec3<Scalar>& 
   if (lmin > Scalar(0)) {
     const Mat3<Scalar> cov = es.eigenvectors() * es.eigenvalues().cwiseInverse().asDiagonal() *
                              es.eigenvectors().transpose() * sigma2;
-    for (int k = first; k < 3; ++k) out->rm_sigma_rad(k) = std::sqrt(cov(k, k));
+    for (int k = first; k < 3; ++k)
+      out->rm_sigma_rad(k) = std::sqrt(cov(k, k));
   }
   (void)dim;
   if (!(out->weak_sigma_rad <= opt.max_sigma_rad)) {
@@ -189,14 +203,16 @@ void assess_angles(const Mat3<Scalar>& n_aa, Scalar sigma2, const Vec3<Scalar>& 
 
 // Li's plane compression in its O(N) form. w, o: sensor model from the ellipsoid fit.
 template <typename Scalar, std::size_t Capacity>
-MisalignmentSolution<Scalar> plane_compression(const SampleStore<Scalar, Capacity>& store,
-                                               const Mat3<Scalar>& w, const Vec3<Scalar>& o,
-                                               const MisalignmentOptions<Scalar>& opt = {}) noexcept {
+MisalignmentSolution<Scalar> plane_compression(
+    const SampleStore<Scalar, Capacity>& store, const Mat3<Scalar>& w, const Vec3<Scalar>& o,
+    const MisalignmentOptions<Scalar>& opt = {}) noexcept {
   MisalignmentSolution<Scalar> out;
   out.heading_fixed = opt.fix_heading;
   Vec3<Scalar> ang = Vec3<Scalar>::Zero();
-  if (!detail::rm_linear_start(store, w, o, &ang)) ang.setZero();
-  if (opt.fix_heading) ang(kRmAlpha) = opt.fixed_heading_rad;
+  if (!detail::rm_linear_start(store, w, o, &ang))
+    ang.setZero();
+  if (opt.fix_heading)
+    ang(kRmAlpha) = opt.fixed_heading_rad;
   const Scalar tol = detail::default_tolerance<Scalar>();
   Mat3<Scalar> nmat = Mat3<Scalar>::Zero();
   Scalar cost{0};
@@ -212,12 +228,14 @@ MisalignmentSolution<Scalar> plane_compression(const SampleStore<Scalar, Capacit
     n = 0;
     for (std::size_t i = 0; i < store.size(); ++i) {
       const StoredSample<Scalar>& s = store[i];
-      if (!detail::usable(s)) continue;
+      if (!detail::usable(s))
+        continue;
       const Vec3<Scalar> u = s.r_bn().col(2);  // Up in body components
       const Vec3<Scalar> h = detail::unit_field(s, w, o);
       const Scalar f = u.dot(rm.transpose() * h);
       Vec3<Scalar> j;
-      for (int k = 0; k < 3; ++k) j(k) = u.dot(d[static_cast<std::size_t>(k)].transpose() * h);
+      for (int k = 0; k < 3; ++k)
+        j(k) = u.dot(d[static_cast<std::size_t>(k)].transpose() * h);
       sjj.template selfadjointView<Eigen::Upper>().rankUpdate(j);
       sj += j;
       sfj += f * j;
@@ -225,7 +243,8 @@ MisalignmentSolution<Scalar> plane_compression(const SampleStore<Scalar, Capacit
       sff += f * f;
       ++n;
     }
-    if (n < 4) return out;
+    if (n < 4)
+      return out;
     const Scalar nn = static_cast<Scalar>(n);
     nmat = Mat3<Scalar>(sjj.template selfadjointView<Eigen::Upper>()) - sj * sj.transpose() / nn;
     Vec3<Scalar> g = sfj - sf * sj / nn;
@@ -239,9 +258,11 @@ MisalignmentSolution<Scalar> plane_compression(const SampleStore<Scalar, Capacit
     }
     const Eigen::LDLT<Mat3<Scalar>> ldlt(a);
     const Vec3<Scalar> step = -ldlt.solve(g);
-    if (ldlt.info() != Eigen::Success || !step.allFinite()) break;
+    if (ldlt.info() != Eigen::Success || !step.allFinite())
+      break;
     // A direction the data cannot see must not wander: stop on a degenerate system.
-    if (step.norm() > Scalar(1)) break;
+    if (step.norm() > Scalar(1))
+      break;
     ang += step;
     if (step.template lpNorm<Eigen::Infinity>() < tol) {
       converged = true;
@@ -260,7 +281,8 @@ MisalignmentSolution<Scalar> plane_compression(const SampleStore<Scalar, Capacit
   const Mat3<Scalar> rm = li_rm(out.rm_rad);
   Vec3<Scalar> hsum = Vec3<Scalar>::Zero();
   for (std::size_t i = 0; i < store.size(); ++i) {
-    if (!detail::usable(store[i])) continue;
+    if (!detail::usable(store[i]))
+      continue;
     hsum += store[i].r_bn().transpose() * (rm.transpose() * (w * (store[i].raw() - o)));
   }
   out.has_h_n = n > 0;
@@ -278,8 +300,10 @@ MisalignmentSolution<Scalar> joint_rm_hn(const SampleStore<Scalar, Capacity>& st
   MisalignmentSolution<Scalar> out;
   out.heading_fixed = opt.fix_heading;
   Vec3<Scalar> ang = Vec3<Scalar>::Zero();
-  if (!detail::rm_linear_start(store, w, o, &ang)) ang.setZero();
-  if (opt.fix_heading) ang(kRmAlpha) = opt.fixed_heading_rad;
+  if (!detail::rm_linear_start(store, w, o, &ang))
+    ang.setZero();
+  if (opt.fix_heading)
+    ang(kRmAlpha) = opt.fixed_heading_rad;
   // Start d at the mean of the rotated samples.
   Vec3<Scalar> dvec = Vec3<Scalar>::Zero();
   Scalar fsum{0};
@@ -287,13 +311,15 @@ MisalignmentSolution<Scalar> joint_rm_hn(const SampleStore<Scalar, Capacity>& st
   {
     const Mat3<Scalar> rm = li_rm(ang);
     for (std::size_t i = 0; i < store.size(); ++i) {
-      if (!detail::usable(store[i])) continue;
+      if (!detail::usable(store[i]))
+        continue;
       dvec += store[i].r_bn().transpose() * (rm.transpose() * detail::unit_field(store[i], w, o));
       fsum += store[i].f;
       ++n;
     }
   }
-  if (n < 4) return out;
+  if (n < 4)
+    return out;
   const Scalar nn = static_cast<Scalar>(n);
   dvec /= nn;
   const Scalar fmean = fsum / nn;
@@ -310,12 +336,14 @@ MisalignmentSolution<Scalar> joint_rm_hn(const SampleStore<Scalar, Capacity>& st
     sse = Scalar(0);
     for (std::size_t i = 0; i < store.size(); ++i) {
       const StoredSample<Scalar>& s = store[i];
-      if (!detail::usable(s)) continue;
+      if (!detail::usable(s))
+        continue;
       const Mat3<Scalar> rt = s.r_bn().transpose();
       const Vec3<Scalar> h = detail::unit_field(s, w, o);
       const Vec3<Scalar> r = rt * (rm.transpose() * h) - dvec;
       Mat<Scalar, 3, kP> j;
-      for (int k = 0; k < 3; ++k) j.col(k) = rt * (d[static_cast<std::size_t>(k)].transpose() * h);
+      for (int k = 0; k < 3; ++k)
+        j.col(k) = rt * (d[static_cast<std::size_t>(k)].transpose() * h);
       j.template rightCols<3>() = -Mat3<Scalar>::Identity();
       nmat.template selfadjointView<Eigen::Upper>().rankUpdate(j.transpose());
       g += j.transpose() * r;
@@ -331,8 +359,10 @@ MisalignmentSolution<Scalar> joint_rm_hn(const SampleStore<Scalar, Capacity>& st
     }
     const Eigen::LDLT<Mat<Scalar, kP, kP>> ldlt(a);
     const Vec<Scalar, kP> step = -ldlt.solve(g);
-    if (ldlt.info() != Eigen::Success || !step.allFinite()) break;
-    if (step.template head<3>().norm() > Scalar(1)) break;
+    if (ldlt.info() != Eigen::Success || !step.allFinite())
+      break;
+    if (step.template head<3>().norm() > Scalar(1))
+      break;
     ang += step.template head<3>();
     dvec += step.template tail<3>();
     if (step.template lpNorm<Eigen::Infinity>() < tol) {

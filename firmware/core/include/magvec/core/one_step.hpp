@@ -95,8 +95,9 @@ class OneStepFit {
   // start: two-step Li parameters (Kof in nT); d_start: direction of h_n (any length > 0).
   template <std::size_t Capacity>
   static OneStepSolution<Scalar> solve(const SampleStore<Scalar, Capacity>& store,
-                                       const Normalization<Scalar>& norm, const LiParams<Scalar>& start,
-                                       const Vec3<Scalar>& d_start, const OneStepOptions<Scalar>& opt) noexcept {
+                                       const Normalization<Scalar>& norm,
+                                       const LiParams<Scalar>& start, const Vec3<Scalar>& d_start,
+                                       const OneStepOptions<Scalar>& opt) noexcept {
     OneStepSolution<Scalar> out;
     out.heading_fixed = opt.fix_heading;
     Vec3<Scalar> ks = start.ks, o_rad = start.o_rad, u = norm.to_unit(start.kof), rm = start.rm_rad;
@@ -115,8 +116,10 @@ class OneStepFit {
     for (; it < opt.max_iterations; ++it) {
       tangent_basis(d, &t1, &t2);
       VecP g;
-      pass(store, norm, ks, o_rad, u, rm, d, t1, t2, sm, sa2, opt.attitude_model, &n, &g, &chi2, &fsum, &count);
-      if (count < 5) return out;
+      pass(store, norm, ks, o_rad, u, rm, d, t1, t2, sm, sa2, opt.attitude_model, &n, &g, &chi2,
+           &fsum, &count);
+      if (count < 5)
+        return out;
       if (!(chi2 <= prev_chi2 * (Scalar(1) + Scalar(1e-6))) && it > 0 && last_step.norm() > tol) {
         // The last step overshot: go back half of it and re-evaluate.
         last_step *= Scalar(-0.5);
@@ -133,15 +136,18 @@ class OneStepFit {
       }
       const Eigen::LDLT<MatP> ldlt(a);
       VecP step = -ldlt.solve(g);
-      if (ldlt.info() != Eigen::Success || !step.allFinite()) break;
-      if (step.template segment<3>(kIdxRm).norm() > Scalar(1)) break;  // degenerate direction
+      if (ldlt.info() != Eigen::Success || !step.allFinite())
+        break;
+      if (step.template segment<3>(kIdxRm).norm() > Scalar(1))
+        break;  // degenerate direction
       apply(step, &ks, &o_rad, &u, &rm, &d, t1, t2);
       last_step = step;
       // Converged when every change is tiny in absolute terms or against its own uncertainty.
       bool small = true;
       for (int k = 0; k < kParams; ++k) {
         const Scalar sig = a(k, k) > Scalar(0) ? Scalar(1) / std::sqrt(a(k, k)) : Scalar(0);
-        if (std::abs(step(k)) > tol && std::abs(step(k)) > Scalar(1e-4) * sig) small = false;
+        if (std::abs(step(k)) > tol && std::abs(step(k)) > Scalar(1e-4) * sig)
+          small = false;
       }
       if (small) {
         converged = true;
@@ -174,23 +180,27 @@ class OneStepFit {
     const Scalar factor = opt.scale_sigma_by_residual ? out.chi2_per_dof : Scalar(1);
     const Eigen::LDLT<MatP> ldlt(a);
     MatP cov = ldlt.solve(MatP::Identity()) * factor;
-    if (opt.fix_heading) cov(kIdxRm + kRmAlpha, kIdxRm + kRmAlpha) = Scalar(0);
+    if (opt.fix_heading)
+      cov(kIdxRm + kRmAlpha, kIdxRm + kRmAlpha) = Scalar(0);
     VecP sd;
-    for (int k = 0; k < kParams; ++k) sd(k) = std::sqrt(std::max(cov(k, k), Scalar(0)));
+    for (int k = 0; k < kParams; ++k)
+      sd(k) = std::sqrt(std::max(cov(k, k), Scalar(0)));
     out.sigma.ks = sd.template segment<3>(kIdxKs);
     out.sigma.o_rad = sd.template segment<3>(kIdxO);
     out.sigma.kof = sd.template segment<3>(kIdxKof) * norm.scale;
     out.sigma.rm_rad = sd.template segment<3>(kIdxRm);
     Mat<Scalar, 3, 2> tb;
     tb << t1, t2;
-    const Mat3<Scalar> cov_h = tb * cov.template block<2, 2>(kIdxDir, kIdxDir) * tb.transpose() * (fmean * fmean);
+    const Mat3<Scalar> cov_h =
+        tb * cov.template block<2, 2>(kIdxDir, kIdxDir) * tb.transpose() * (fmean * fmean);
     out.h_n_sigma = cov_h.diagonal().cwiseMax(Scalar(0)).cwiseSqrt();
 
     // Unit-free predicted SD of the angles (noise model only) decides observability.
     const MatP cov_model = ldlt.solve(MatP::Identity());
     Scalar worst_rm{0};
     for (int k = opt.fix_heading ? 1 : 0; k < 3; ++k) {
-      worst_rm = std::max(worst_rm, std::sqrt(std::max(cov_model(kIdxRm + k, kIdxRm + k), Scalar(0))));
+      worst_rm =
+          std::max(worst_rm, std::sqrt(std::max(cov_model(kIdxRm + k, kIdxRm + k), Scalar(0))));
     }
     const bool rm_weak = weakest.template segment<3>(kIdxRm).squaredNorm() > Scalar(0.5);
     if (!(out.rcond >= opt.min_rcond) || !ldlt.isPositive() || ldlt.info() != Eigen::Success) {
@@ -215,10 +225,12 @@ class OneStepFit {
     std::array<Mat3<Scalar>, 3> drm;
     const Mat3<Scalar> rmt = li_rm_with_derivatives(rm_ang, &drm).transpose();
     std::array<Mat3<Scalar>, 3> drmt;
-    for (std::size_t k = 0; k < 3; ++k) drmt[k] = drm[k].transpose();
+    for (std::size_t k = 0; k < 3; ++k)
+      drmt[k] = drm[k].transpose();
     // Rows of dKo/dO_k that are non-zero: O1 -> row z, O2 and O3 -> row y.
     const Vec3<Scalar> dko1(cos(o_rad(0)), 0, -sin(o_rad(0)));
-    const Vec3<Scalar> dko2(-sin(o_rad(1)) * sin(o_rad(2)), -sin(o_rad(1)) * cos(o_rad(2)), cos(o_rad(1)));
+    const Vec3<Scalar> dko2(-sin(o_rad(1)) * sin(o_rad(2)), -sin(o_rad(1)) * cos(o_rad(2)),
+                            cos(o_rad(1)));
     const Vec3<Scalar> dko3(cos(o_rad(1)) * cos(o_rad(2)), -cos(o_rad(1)) * sin(o_rad(2)), 0);
     n->setZero();
     g->setZero();
@@ -227,7 +239,8 @@ class OneStepFit {
     *count = 0;
     for (std::size_t i = 0; i < store.size(); ++i) {
       const StoredSample<Scalar>& s = store[i];
-      if (!detail::usable(s)) continue;
+      if (!detail::usable(s))
+        continue;
       const Mat3<Scalar> r = s.r_bn();
       const Mat3<Scalar> mt = r.transpose() * rmt;  // R^T Rm^T
       const Mat3<Scalar> p = mt * w;
@@ -236,12 +249,14 @@ class OneStepFit {
       const Vec3<Scalar> hn = fn * d;
       const Vec3<Scalar> res = mt * hs - hn;
       Mat<Scalar, 3, kParams> j;
-      for (int k = 0; k < 3; ++k) j.col(kIdxKs + k) = -p.col(k) * ko.row(k).dot(hs);
+      for (int k = 0; k < 3; ++k)
+        j.col(kIdxKs + k) = -p.col(k) * ko.row(k).dot(hs);
       j.col(kIdxO + 0) = -p.col(2) * (ks(2) * dko1.dot(hs));
       j.col(kIdxO + 1) = -p.col(1) * (ks(1) * dko2.dot(hs));
       j.col(kIdxO + 2) = -p.col(1) * (ks(1) * dko3.dot(hs));
       j.template block<3, 3>(0, kIdxKof) = -p;
-      for (int k = 0; k < 3; ++k) j.col(kIdxRm + k) = r.transpose() * (drmt[static_cast<std::size_t>(k)] * hs);
+      for (int k = 0; k < 3; ++k)
+        j.col(kIdxRm + k) = r.transpose() * (drmt[static_cast<std::size_t>(k)] * hs);
       j.col(kIdxDir) = -fn * t1;
       j.col(kIdxDir + 1) = -fn * t2;
       // Residual covariance.
@@ -249,7 +264,8 @@ class OneStepFit {
       if (model == AttitudeNoiseModel::kLiEuler) {
         const Scalar hx = r(1, 1), hy = -r(1, 0);
         const Scalar hl = std::sqrt(hx * hx + hy * hy);
-        const Vec3<Scalar> a1 = hl > Scalar(0) ? Vec3<Scalar>(hx / hl, hy / hl, 0) : Vec3<Scalar>::UnitX();
+        const Vec3<Scalar> a1 =
+            hl > Scalar(0) ? Vec3<Scalar>(hx / hl, hy / hl, 0) : Vec3<Scalar>::UnitX();
         const Vec3<Scalar> c0 = Vec3<Scalar>::UnitZ().cross(hn);
         const Vec3<Scalar> c1 = a1.cross(hn);
         const Vec3<Scalar> c2 = Vec3<Scalar>(r.row(1).transpose()).cross(hn);
@@ -258,7 +274,8 @@ class OneStepFit {
         cov += sa2 * (hn.squaredNorm() * Mat3<Scalar>::Identity() - hn * hn.transpose());
       }
       const Eigen::LLT<Mat3<Scalar>> llt(cov);
-      if (llt.info() != Eigen::Success) continue;
+      if (llt.info() != Eigen::Success)
+        continue;
       const Mat<Scalar, 3, kParams> jw = llt.matrixL().solve(j);
       const Vec3<Scalar> rw = llt.matrixL().solve(res);
       n->template selfadjointView<Eigen::Upper>().rankUpdate(jw.transpose());
@@ -271,7 +288,8 @@ class OneStepFit {
   }
 
   static void tangent_basis(const Vec3<Scalar>& d, Vec3<Scalar>* t1, Vec3<Scalar>* t2) noexcept {
-    const Vec3<Scalar> ref = std::abs(d(0)) < Scalar(0.9) ? Vec3<Scalar>::UnitX() : Vec3<Scalar>::UnitY();
+    const Vec3<Scalar> ref =
+        std::abs(d(0)) < Scalar(0.9) ? Vec3<Scalar>::UnitX() : Vec3<Scalar>::UnitY();
     *t1 = d.cross(ref).normalized();
     *t2 = d.cross(*t1);
   }

@@ -2,7 +2,8 @@
 //  * each axis of each sweep is fitted by linear least squares as a sin(theta) + b cos(theta) + D
 //    = A sin(theta + phi) + D (streaming 3x3 normal equations, O(1) memory, no iteration);
 //  * signed, turn-direction independent angles (001-3):
-//      alpha = 90deg - |wrap(phi_y - phi_x)|,  beta = sign(wrap(phi_y - phi_x)) wrap(phi_z - phi_x);
+//      alpha = 90deg - |wrap(phi_y - phi_x)|,  beta = sign(wrap(phi_y - phi_x)) wrap(phi_z -
+//      phi_x);
 //  * ratio direction A_x / A_y = kx / ky (001-2);
 //  * the Z offset from the XZ sweep (001-1), with both fixture geometries of 001-4:
 //      kPlaneNormal: the XZ sweep turns about the normal of the actual Xm-Zm sensing plane:
@@ -71,11 +72,14 @@ class SineSweep {
   SweepFit<Scalar> fit() const noexcept {
     SweepFit<Scalar> out;
     out.samples = count_;
-    if (count_ < kMinSamples) return out;
+    if (count_ < kMinSamples)
+      return out;
     const Eigen::LDLT<Mat3<Scalar>> ldlt(n_);
-    if (ldlt.info() != Eigen::Success || !ldlt.isPositive()) return out;
+    if (ldlt.info() != Eigen::Success || !ldlt.isPositive())
+      return out;
     const Mat3<Scalar> coef = ldlt.solve(rhs_);  // column k: [a, b, D] of axis k
-    if (!coef.allFinite() || ldlt.rcond() < Scalar(1e-6)) return out;
+    if (!coef.allFinite() || ldlt.rcond() < Scalar(1e-6))
+      return out;
     for (int k = 0; k < 3; ++k) {
       const Scalar a = coef(0, k), b = coef(1, k);
       out.amplitude(k) = std::hypot(a, b);
@@ -105,19 +109,19 @@ enum class SineFixture : std::uint8_t {
 template <typename Scalar>
 struct SineFitOptions {
   SineFixture xz_fixture = SineFixture::kHousingY;
-  Scalar field_nT{0};            // |B|, required
-  Scalar up_sign_xy{1};          // +1: fixture +Z points Up in the XY sweep
-  Scalar up_sign_xz{1};          // +1: the XZ turntable axis (housing +Y / Xm x Zm) points Up
+  Scalar field_nT{0};    // |B|, required
+  Scalar up_sign_xy{1};  // +1: fixture +Z points Up in the XY sweep
+  Scalar up_sign_xz{1};  // +1: the XZ turntable axis (housing +Y / Xm x Zm) points Up
   bool inclination_known = false;
-  Scalar inclination_rad{0};     // used when inclination_known (positive downward)
+  Scalar inclination_rad{0};  // used when inclination_known (positive downward)
 };
 
 enum class SineStatus : std::uint8_t {
   kOk,
-  kTooFewSamples,     // a sweep has fewer than 4 usable samples
-  kDegenerateSweep,   // the sweep does not span enough turntable angles (singular fit)
-  kNoField,           // |B| missing or not positive
-  kInconsistent,      // formulas out of range (e.g. |cos(phi) / cos(beta)| > 1)
+  kTooFewSamples,    // a sweep has fewer than 4 usable samples
+  kDegenerateSweep,  // the sweep does not span enough turntable angles (singular fit)
+  kNoField,          // |B| missing or not positive
+  kInconsistent,     // formulas out of range (e.g. |cos(phi) / cos(beta)| > 1)
 };
 
 template <typename Scalar>
@@ -131,14 +135,16 @@ struct SineSolution {
 };
 
 template <typename Scalar>
-SineSolution<Scalar> solve_sine(const SineSweep<Scalar>& xy_sweep, const SineSweep<Scalar>& xz_sweep,
+SineSolution<Scalar> solve_sine(const SineSweep<Scalar>& xy_sweep,
+                                const SineSweep<Scalar>& xz_sweep,
                                 const SineFitOptions<Scalar>& opt) noexcept {
   using std::abs;
   using std::cos;
   using std::sin;
   constexpr Scalar kHalfPi = kPi<Scalar> / Scalar(2);
   SineSolution<Scalar> out;
-  if (xy_sweep.count() < SineSweep<Scalar>::kMinSamples || xz_sweep.count() < SineSweep<Scalar>::kMinSamples) {
+  if (xy_sweep.count() < SineSweep<Scalar>::kMinSamples ||
+      xz_sweep.count() < SineSweep<Scalar>::kMinSamples) {
     return out;
   }
   out.xy = xy_sweep.fit();
@@ -157,7 +163,8 @@ SineSolution<Scalar> solve_sine(const SineSweep<Scalar>& xy_sweep, const SineSwe
   // XY sweep: alpha, beta (ERRATA 001-3).
   const Scalar dyx = wrap_pi(a.phase_rad(1) - a.phase_rad(0));
   p.alpha_rad = kHalfPi - abs(dyx);
-  p.beta_rad = (dyx < Scalar(0) ? Scalar(-1) : Scalar(1)) * wrap_pi(a.phase_rad(2) - a.phase_rad(0));
+  p.beta_rad =
+      (dyx < Scalar(0) ? Scalar(-1) : Scalar(1)) * wrap_pi(a.phase_rad(2) - a.phase_rad(0));
   const Scalar ky_kx = a.amplitude(1) / a.amplitude(0);  // ERRATA 001-2
   // XZ sweep: gamma, kz / kx.
   const Scalar phi = abs(wrap_pi(b.phase_rad(2) - b.phase_rad(0)));
@@ -194,8 +201,9 @@ SineSolution<Scalar> solve_sine(const SineSweep<Scalar>& xy_sweep, const SineSwe
   // Offsets: x and y carry no vertical field in either sweep; z from the XZ sweep (001-1).
   p.b0(0) = Scalar(0.5) * (a.offset(0) + b.offset(0));
   p.b0(1) = a.offset(1);
-  p.b0(2) = opt.xz_fixture == SineFixture::kPlaneNormal ? b.offset(2)
-                                                        : b.offset(2) - p.k(2) * sb * sg * opt.up_sign_xz * up;
+  p.b0(2) = opt.xz_fixture == SineFixture::kPlaneNormal
+                ? b.offset(2)
+                : b.offset(2) - p.k(2) * sb * sg * opt.up_sign_xz * up;
   if (!p.k.allFinite() || !p.b0.allFinite() || !std::isfinite(p.gamma_rad)) {
     out.status = SineStatus::kInconsistent;
     return out;

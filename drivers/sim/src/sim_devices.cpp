@@ -55,8 +55,7 @@ std::int32_t SimAds131Device::code_from_nT(double nT, double nT_per_volt, std::u
   } else {
     c = static_cast<std::int32_t>(code);
   }
-  if (clipped != nullptr)
-    *clipped = clip;
+  if (clipped != nullptr) *clipped = clip;
   return c;
 }
 
@@ -74,17 +73,16 @@ void SimAds131Device::convert(const SimSample& s, std::uint64_t t_us) noexcept {
     for (std::size_t axis = 0; axis < 3; ++axis) {
       const std::uint8_t ch = config_.transfer.channel_of_axis[axis] & 3u;
       bool clip = false;
-      codes_[ch] = code_from_nT(s.m_nT[static_cast<Eigen::Index>(axis)],
-                                config_.transfer.nT_per_volt[axis],
-                                config_.transfer.gain_code[ch], &clip);
+      codes_[ch] =
+          code_from_nT(s.m_nT[static_cast<Eigen::Index>(axis)], config_.transfer.nT_per_volt[axis],
+                       config_.transfer.gain_code[ch], &clip);
       any_clip = any_clip || clip;
     }
-    if (any_clip)
-      ++injected_.range_clipped;
+    if (any_clip) ++injected_.range_clipped;
     if (saturate) {
       const std::uint8_t ch = config_.transfer.channel_of_axis[sat_pick % 3] & 3u;
-      codes_[ch] = (sat_pick & 8u) != 0 ? ads131::kCodePositiveFullScale
-                                         : ads131::kCodeNegativeFullScale;
+      codes_[ch] =
+          (sat_pick & 8u) != 0 ? ads131::kCodePositiveFullScale : ads131::kCodeNegativeFullScale;
       ++injected_.saturated;
     }
     drdy_bits_ = ads131::kStatusDrdyMask;
@@ -100,8 +98,7 @@ void SimAds131Device::convert(const SimSample& s, std::uint64_t t_us) noexcept {
 
 hal::Status SimAds131Device::wait_edge(hal::EdgeEvent& out, std::uint32_t /*timeout_us*/) noexcept {
   // Simulated time does not pass inside a call: an empty queue is a timeout whatever the timeout.
-  if (edge_count_ == 0)
-    return hal::Status::kTimeout;
+  if (edge_count_ == 0) return hal::Status::kTimeout;
   out = edges_[edge_head_];
   edge_head_ = (edge_head_ + 1) % kEdgeQueue;
   --edge_count_;
@@ -140,8 +137,7 @@ hal::Status SimAds131Device::transfer(std::span<const std::uint8_t> tx,
         full_scale = full_scale || c == ads131::kCodePositiveFullScale ||
                      c == ads131::kCodeNegativeFullScale;
       }
-      if (full_scale)
-        ++injected_.saturated_frames;
+      if (full_scale) ++injected_.saturated_frames;
     }
   }
   const std::size_t n = rx.size() < out.size() ? rx.size() : out.size();
@@ -190,8 +186,8 @@ void SimSerialFluxgate::put(std::uint8_t b) noexcept {
 void SimSerialFluxgate::transmit(const SimSample& s) noexcept {
   const bool garbage = draw(garbage_rng_, config_.faults.garbage_probability);
   const std::uint64_t garbage_len =
-      1 + below(garbage_rng_, config_.faults.garbage_max_bytes > 0 ? config_.faults.garbage_max_bytes
-                                                                   : 1);
+      1 + below(garbage_rng_,
+                config_.faults.garbage_max_bytes > 0 ? config_.faults.garbage_max_bytes : 1);
   const bool bad_checksum = draw(checksum_rng_, config_.faults.bad_checksum_probability);
   const std::uint64_t digit_pick = checksum_rng_.next();
   if (garbage) {
@@ -206,8 +202,7 @@ void SimSerialFluxgate::transmit(const SimSample& s) noexcept {
   std::array<char, AsciiLineDecoder::kMaxLine + 8> line{};
   const std::array<double, 3> m{s.m_nT.x(), s.m_nT.y(), s.m_nT.z()};
   const std::size_t n = encoder_.encode(m, config_.with_checksum, line);
-  if (n == 0)
-    return;
+  if (n == 0) return;
   if (bad_checksum && config_.with_checksum && n >= 5) {
     // "...*HH\r\n": replace the low hex digit by another one.
     static constexpr char kHex[] = "0123456789ABCDEF";
@@ -254,8 +249,7 @@ void SimSbgIns::push(hal::CanFrame f, std::uint64_t t_us, std::uint8_t min_dlc,
     for (std::size_t i = f.dlc; i < f.data.size(); ++i)
       f.data[i] = 0;
     ++injected_.corrupted_frames;
-    if (corrupted != nullptr)
-      *corrupted = true;
+    if (corrupted != nullptr) *corrupted = true;
   }
   if (count_ == kQueue) {
     ++injected_.overflow_frames;
@@ -275,32 +269,30 @@ void SimSbgIns::emit_epoch(std::uint64_t k, const HostTimeMap& time) noexcept {
   }
   const auto t_epoch_us = static_cast<std::int64_t>(std::llround(t * 1e6));
   const std::uint64_t t_rx = time.host_us(t) + config_.can_latency_us;
-  const auto ins_time =
-      static_cast<std::uint32_t>(static_cast<std::uint64_t>(t_epoch_us) + config_.ins_clock_offset_us);
+  const auto ins_time = static_cast<std::uint32_t>(static_cast<std::uint64_t>(t_epoch_us) +
+                                                   config_.ins_clock_offset_us);
   const core::Mat3<double> r_bn = sim_.ins_attitude_at(t);
   const bool invalid = in_window(t, fa.invalid_start_s, fa.invalid_length_s);
-  if (invalid)
-    ++injected_.invalid_epochs;
+  if (invalid) ++injected_.invalid_epochs;
   const std::uint32_t solution =
-      invalid ? static_cast<std::uint32_t>(sbg::SolutionMode::kVerticalGyro)
-              : (static_cast<std::uint32_t>(sbg::SolutionMode::kNavPosition) |
-                 sbg::kSolAttitudeValid | sbg::kSolHeadingValid | sbg::kSolVelocityValid |
-                 sbg::kSolPositionValid);
+      invalid
+          ? static_cast<std::uint32_t>(sbg::SolutionMode::kVerticalGyro)
+          : (static_cast<std::uint32_t>(sbg::SolutionMode::kNavPosition) | sbg::kSolAttitudeValid |
+             sbg::kSolHeadingValid | sbg::kSolVelocityValid | sbg::kSolPositionValid);
   const sbg::CanIds& ids = config_.ids;
   bool lost = false;
   if (config_.status01_every != 0 && k % config_.status01_every == 0)
     push(sbg::encode_status_01(ins_time, 0, 0, ids), t_rx, 8, nullptr);
   push(sbg::encode_ekf_info(ins_time, ids), t_rx, 4, &lost);
   push(sbg::encode_status_03(solution, 0, ids), t_rx, 6, nullptr);
-  push(sbg::encode_orientation_acc(config_.accuracy_rad, config_.accuracy_rad,
-                                   config_.accuracy_rad, ids),
+  push(sbg::encode_orientation_acc(config_.accuracy_rad, config_.accuracy_rad, config_.accuracy_rad,
+                                   ids),
        t_rx, 6, nullptr);
   const core::YawPitchRoll<double> ypr = core::ypr_from_r_bn(r_bn);
   push(sbg::encode_ekf_euler(ypr.roll, ypr.pitch, ypr.yaw, ids), t_rx, 6, nullptr);
   push(sbg::encode_ekf_quat(sbg::sbg_quat_from_r_bn(r_bn), ids), t_rx, 8, &lost);
   ++injected_.epochs;
-  if (lost)
-    ++injected_.corrupted_epochs;
+  if (lost) ++injected_.corrupted_epochs;
 }
 
 void SimSbgIns::run_until(double t_s, const HostTimeMap& time) noexcept {
@@ -311,8 +303,7 @@ void SimSbgIns::run_until(double t_s, const HostTimeMap& time) noexcept {
 }
 
 hal::Status SimSbgIns::receive(hal::CanFrame& out, std::uint32_t /*timeout_us*/) noexcept {
-  if (count_ == 0)
-    return hal::Status::kTimeout;
+  if (count_ == 0) return hal::Status::kTimeout;
   out = queue_[head_];
   head_ = (head_ + 1) % kQueue;
   --count_;
@@ -327,10 +318,9 @@ hal::Status SimSbgIns::send(const hal::CanFrame& /*frame*/) noexcept {
 // ---------------------------------------------------------------- SimRig
 
 std::uint64_t HostTimeMap::host_us(double t_s) const noexcept {
-  std::int64_t t = static_cast<std::int64_t>(std::llround(t_s * 1e6)) +
-                   static_cast<std::int64_t>(epoch_us);
-  if (t_s >= jump_at_s)
-    t += jump_us;
+  std::int64_t t =
+      static_cast<std::int64_t>(std::llround(t_s * 1e6)) + static_cast<std::int64_t>(epoch_us);
+  if (t_s >= jump_at_s) t += jump_us;
   return t > 0 ? static_cast<std::uint64_t>(t) : 0;
 }
 
@@ -341,8 +331,7 @@ SimRig::SimRig(Simulator& sim, const SimRigConfig& config) noexcept
 
 bool SimRig::step() noexcept {
   SimSample s;
-  if (!sim_.next(&s))
-    return false;
+  if (!sim_.next(&s)) return false;
   last_ = s;
   ++steps_;
   if (!jumped_ && s.t_s >= config_.time.jump_at_s && config_.time.jump_us != 0) {

@@ -248,13 +248,13 @@ TEST(SimSbgIns, RealDecoderReadsBackAttitudeWithinInt16Quantisation) {
     while (ins.read(a, 0) == hal::Status::kOk) {
       const double t = static_cast<double>(n) / 100.0;  // epoch k at k / 100 Hz
       EXPECT_EQ(a.t_us, rig.host_us(t) + rc.ins.can_latency_us);
-      EXPECT_EQ(a.t_ins_us, static_cast<std::uint64_t>(std::llround(t * 1e6)) +
-                                rc.ins.ins_clock_offset_us);
+      EXPECT_EQ(a.t_ins_us,
+                static_cast<std::uint64_t>(std::llround(t * 1e6)) + rc.ins.ins_clock_offset_us);
       EXPECT_EQ(a.flags, hal::kAttAttitudeValid | hal::kAttHeadingValid | hal::kAttStatusKnown |
                              hal::kAttAccuracyKnown);
       const core::Quat<double> q(a.q_nb[0], a.q_nb[1], a.q_nb[2], a.q_nb[3]);
-      const double err = core::rotation_angle_between(core::r_bn_from_quat(q),
-                                                      sim.true_attitude_at(t));
+      const double err =
+          core::rotation_angle_between(core::r_bn_from_quat(q), sim.true_attitude_at(t));
       worst = std::fmax(worst, err);
       EXPECT_NEAR(a.sigma_rad[0], rc.ins.accuracy_rad, 0.5e-4);
       ++n;
@@ -304,8 +304,7 @@ TEST(SimSbgIns, GapAndInvalidStatusWindows) {
     while (ins.read(a, 0) == hal::Status::kOk) {
       ++n;
       const double t = static_cast<double>(a.t_ins_us - rc.ins.ins_clock_offset_us) * 1e-6;
-      if (t >= 5.0 && t < 6.0)
-        ++in_gap;
+      if (t >= 5.0 && t < 6.0) ++in_gap;
       if ((a.flags & hal::kAttAttitudeValid) == 0) {
         ++invalid;
         EXPECT_GE(t, 10.0);

@@ -84,15 +84,15 @@ struct SimAds131Config {
 };
 
 struct SimAds131Injected {
-  std::uint32_t conversions{0};     // DRDY edges queued
-  std::uint32_t not_fresh{0};       // conversions from a simulator dropout (DRDY bits clear)
-  std::uint32_t crc_corrupted{0};   // output frames with a corrupted byte
-  std::uint32_t saturated{0};       // conversions with a forced full-scale channel
+  std::uint32_t conversions{0};       // DRDY edges queued
+  std::uint32_t not_fresh{0};         // conversions from a simulator dropout (DRDY bits clear)
+  std::uint32_t crc_corrupted{0};     // output frames with a corrupted byte
+  std::uint32_t saturated{0};         // conversions with a forced full-scale channel
   std::uint32_t saturated_frames{0};  // intact data frames carrying a full-scale code of a used
                                       // channel (what the driver must count as saturated)
-  std::uint32_t range_clipped{0};   // conversions clipped because the field exceeded the range
-  std::uint32_t frames{0};          // SPI transfers answered
-  std::uint32_t bad_commands{0};    // transfers with an unknown command or a wrong size
+  std::uint32_t range_clipped{0};     // conversions clipped because the field exceeded the range
+  std::uint32_t frames{0};            // SPI transfers answered
+  std::uint32_t bad_commands{0};      // transfers with an unknown command or a wrong size
 };
 
 class SimAds131Device final : public hal::SpiBus, public hal::DataReadyLine {
@@ -108,7 +108,8 @@ class SimAds131Device final : public hal::SpiBus, public hal::DataReadyLine {
   // hal::SpiBus: one 18-byte frame. Answers RESET (FF24h in the next frame), WREG (acknowledge
   // in the next frame; GAIN1 is stored), NULL (STATUS + channel data), other commands (echoed
   // as in the datasheet's "response to an unknown command": STATUS is returned).
-  hal::Status transfer(std::span<const std::uint8_t> tx, std::span<std::uint8_t> rx) noexcept override;
+  hal::Status transfer(std::span<const std::uint8_t> tx,
+                       std::span<std::uint8_t> rx) noexcept override;
   // hal::DataReadyLine: falling edges only (the line is configured for falling edges).
   hal::Status wait_edge(hal::EdgeEvent& out, std::uint32_t timeout_us) noexcept override;
   std::uint32_t missed_edges() const noexcept override { return missed_edges_; }
@@ -141,9 +142,9 @@ class SimAds131Device final : public hal::SpiBus, public hal::DataReadyLine {
 // ---------------------------------------------------------------- serial ASCII fluxgate
 
 struct SimSerialFaults {
-  double garbage_probability{0};       // per line: garbage bytes are written before it
+  double garbage_probability{0};        // per line: garbage bytes are written before it
   std::uint32_t garbage_max_bytes{16};  // 1..max bytes of garbage
-  double bad_checksum_probability{0};  // per line: one checksum digit wrong
+  double bad_checksum_probability{0};   // per line: one checksum digit wrong
 };
 
 struct SimSerialConfig {
@@ -202,25 +203,25 @@ struct SimSbgFaults {
 };
 
 struct SimSbgConfig {
-  double rate_hz{100};                // output rate (one epoch per period, from t = 0)
-  std::uint32_t can_latency_us{500};  // CAN receive time - epoch time
+  double rate_hz{100};                        // output rate (one epoch per period, from t = 0)
+  std::uint32_t can_latency_us{500};          // CAN receive time - epoch time
   std::uint32_t ins_clock_offset_us{123456};  // INS time since power-on at host time 0
-  double accuracy_rad{2.6e-4};        // reported 1-sigma (about 0.015 deg)
-  std::uint32_t status01_every{10};   // STATUS_01 every N epochs
+  double accuracy_rad{2.6e-4};                // reported 1-sigma (about 0.015 deg)
+  std::uint32_t status01_every{10};           // STATUS_01 every N epochs
   sbg::CanIds ids{};
   SimSbgFaults faults{};
   std::uint64_t seed{3};
 };
 
 struct SimSbgInjected {
-  std::uint32_t epochs{0};           // epochs with attitude frames sent
-  std::uint32_t gap_epochs{0};       // epochs not sent (gap)
-  std::uint32_t invalid_epochs{0};   // epochs sent with attitude invalid
+  std::uint32_t epochs{0};          // epochs with attitude frames sent
+  std::uint32_t gap_epochs{0};      // epochs not sent (gap)
+  std::uint32_t invalid_epochs{0};  // epochs sent with attitude invalid
   std::uint32_t corrupted_frames{0};
   std::uint32_t corrupted_epochs{0};  // epochs whose attitude sample the decoder cannot produce
-  std::uint32_t frames{0};           // frames queued
-  std::uint32_t overflow_frames{0};  // frames lost because the bus queue was full
-  std::uint32_t sent_by_host{0};     // frames the host sent to the INS (ignored)
+  std::uint32_t frames{0};            // frames queued
+  std::uint32_t overflow_frames{0};   // frames lost because the bus queue was full
+  std::uint32_t sent_by_host{0};      // frames the host sent to the INS (ignored)
 };
 
 class SimSbgIns final : public hal::CanBus {

@@ -27,14 +27,18 @@ void put_u32(hal::CanFrame& f, std::size_t off, std::uint32_t v) noexcept {
     f.data[off + i] = static_cast<std::uint8_t>(v >> (8 * i));
 }
 std::int16_t to_i16(double v) noexcept {
-  if (!std::isfinite(v)) return 0;
+  if (!std::isfinite(v))
+    return 0;
   const double r = std::round(v);
-  if (r > 32767.0) return 32767;
-  if (r < -32768.0) return -32768;
+  if (r > 32767.0)
+    return 32767;
+  if (r < -32768.0)
+    return -32768;
   return static_cast<std::int16_t>(r);
 }
 std::uint16_t to_u16(double v) noexcept {
-  if (!std::isfinite(v) || v <= 0) return 0;
+  if (!std::isfinite(v) || v <= 0)
+    return 0;
   const double r = std::round(v);
   return r > 65535.0 ? std::uint16_t{65535} : static_cast<std::uint16_t>(r);
 }
@@ -60,7 +64,8 @@ std::array<double, 4> sbg_quat_from_r_bn(const core::Mat3<double>& r_bn) noexcep
   const core::Mat3<double> c_ned_frd = (p * r_bn * p).transpose();
   core::Quat<double> q(c_ned_frd);
   q.normalize();
-  if (q.w() < 0) q.coeffs() = -q.coeffs();
+  if (q.w() < 0)
+    q.coeffs() = -q.coeffs();
   return {q.w(), q.x(), q.y(), q.z()};
 }
 
@@ -74,10 +79,13 @@ void CanDecoder::emit(const core::Mat3<double>& r_bn, std::uint64_t t_rx_us) noe
   std::uint32_t flags = 0;
   if (status_known_) {
     flags |= hal::kAttStatusKnown;
-    if ((raw_.solution_status & kSolAttitudeValid) != 0) flags |= hal::kAttAttitudeValid;
-    if ((raw_.solution_status & kSolHeadingValid) != 0) flags |= hal::kAttHeadingValid;
+    if ((raw_.solution_status & kSolAttitudeValid) != 0)
+      flags |= hal::kAttAttitudeValid;
+    if ((raw_.solution_status & kSolHeadingValid) != 0)
+      flags |= hal::kAttHeadingValid;
   }
-  if (accuracy_known_) flags |= hal::kAttAccuracyKnown;
+  if (accuracy_known_)
+    flags |= hal::kAttAccuracyKnown;
   sample_.flags = flags;
   sample_.solution_mode = static_cast<std::uint8_t>(raw_.solution_status & kSolutionModeMask);
   time_fresh_ = false;
@@ -98,34 +106,41 @@ FeedResult CanDecoder::feed(const hal::CanFrame& f) noexcept {
     // with a time stamp of an earlier epoch.
     const std::uint32_t attitude_id =
         config_.source == AttitudeMessage::kQuaternion ? ids.ekf_quat : ids.ekf_euler;
-    if (f.id == ids.ekf_info || f.id == attitude_id) time_fresh_ = false;
+    if (f.id == ids.ekf_info || f.id == attitude_id)
+      time_fresh_ = false;
     ++counters_.malformed;
     return FeedResult::kMalformed;
   };
-  if (f.dlc > 8) return malformed();
+  if (f.dlc > 8)
+    return malformed();
   if (f.id == ids.ekf_info) {
-    if (f.dlc < 4) return malformed();
+    if (f.dlc < 4)
+      return malformed();
     raw_.ekf_time_us = get_u32(f, 0);
     time_fresh_ = true;
     return FeedResult::kConsumed;
   }
   if (f.id == ids.status_03) {
-    if (f.dlc < 6) return malformed();
+    if (f.dlc < 6)
+      return malformed();
     const std::uint32_t status = get_u32(f, 0);
-    if ((status & kSolutionModeMask) > 4) return malformed();
+    if ((status & kSolutionModeMask) > 4)
+      return malformed();
     raw_.solution_status = status;
     status_known_ = true;
     return FeedResult::kConsumed;
   }
   if (f.id == ids.status_01) {
-    if (f.dlc < 8) return malformed();
+    if (f.dlc < 8)
+      return malformed();
     raw_.status01_time_us = get_u32(f, 0);
     raw_.general_status = get_u16(f, 4);
     raw_.clock_status = get_u16(f, 6);
     return FeedResult::kConsumed;
   }
   if (f.id == ids.ekf_orientation_acc) {
-    if (f.dlc < 6) return malformed();
+    if (f.dlc < 6)
+      return malformed();
     const std::array<std::uint16_t, 3> acc{get_u16(f, 0), get_u16(f, 2), get_u16(f, 4)};
     // Ranges from the message definition: roll [0, pi], pitch [0, pi/2], yaw [0, pi].
     if (acc[0] * kAngleScale > kPi + 1e-4 || acc[1] * kAngleScale > kPi / 2 + 1e-4 ||
@@ -137,14 +152,17 @@ FeedResult CanDecoder::feed(const hal::CanFrame& f) noexcept {
     return FeedResult::kConsumed;
   }
   if (f.id == ids.ekf_quat) {
-    if (f.dlc < 8) return malformed();
+    if (f.dlc < 8)
+      return malformed();
     const std::array<std::int16_t, 4> q{get_i16(f, 0), get_i16(f, 2), get_i16(f, 4), get_i16(f, 6)};
     const std::array<double, 4> qd{q[0] * kQuatScale, q[1] * kQuatScale, q[2] * kQuatScale,
                                    q[3] * kQuatScale};
     const double norm = std::sqrt(qd[0] * qd[0] + qd[1] * qd[1] + qd[2] * qd[2] + qd[3] * qd[3]);
-    if (std::fabs(norm - 1.0) > config_.max_quat_norm_error) return malformed();
+    if (std::fabs(norm - 1.0) > config_.max_quat_norm_error)
+      return malformed();
     raw_.quat = q;
-    if (config_.source != AttitudeMessage::kQuaternion) return FeedResult::kConsumed;
+    if (config_.source != AttitudeMessage::kQuaternion)
+      return FeedResult::kConsumed;
     if (!time_fresh_) {
       ++counters_.missing_time;
       return FeedResult::kMissingTime;
@@ -153,7 +171,8 @@ FeedResult CanDecoder::feed(const hal::CanFrame& f) noexcept {
     return FeedResult::kSample;
   }
   // EKF_EULER
-  if (f.dlc < 6) return malformed();
+  if (f.dlc < 6)
+    return malformed();
   const std::array<std::int16_t, 3> e{get_i16(f, 0), get_i16(f, 2), get_i16(f, 4)};
   const double roll = e[0] * kAngleScale, pitch = e[1] * kAngleScale, yaw = e[2] * kAngleScale;
   // int16 * 1e-4 reaches +/-3.2767 rad: values beyond the documented ranges are corrupt.
@@ -162,7 +181,8 @@ FeedResult CanDecoder::feed(const hal::CanFrame& f) noexcept {
     return malformed();
   }
   raw_.euler = e;
-  if (config_.source != AttitudeMessage::kEuler) return FeedResult::kConsumed;
+  if (config_.source != AttitudeMessage::kEuler)
+    return FeedResult::kConsumed;
   if (!time_fresh_) {
     ++counters_.missing_time;
     return FeedResult::kMissingTime;
@@ -220,7 +240,8 @@ hal::Status CanAttitudeSource::read(hal::AttitudeSample& out, std::uint32_t time
   for (int i = 0; i < 64; ++i) {
     hal::CanFrame f;
     const hal::Status s = bus_.receive(f, i == 0 ? timeout_us : 0);
-    if (s == hal::Status::kTimeout || s == hal::Status::kNoData) return hal::Status::kTimeout;
+    if (s == hal::Status::kTimeout || s == hal::Status::kNoData)
+      return hal::Status::kTimeout;
     if (s != hal::Status::kOk) {
       ++decoder_.counters().bus_errors;
       return s;

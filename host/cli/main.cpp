@@ -13,6 +13,7 @@ int main(int argc, char** argv) {
   app.require_subcommand(0, 1);
   magvec::host::cli::register_simulate(app);
   magvec::host::cli::register_demo(app);
+  magvec::host::cli::register_run(app);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

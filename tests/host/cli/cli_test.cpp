@@ -27,7 +27,8 @@ struct Result {
 Result run(const std::string& args) {
   const std::string cmd = std::string(MAGVEC_CLI) + " " + args + " 2>&1";
   FILE* p = ::popen(cmd.c_str(), "r");
-  if (p == nullptr) return {-1, ""};
+  if (p == nullptr)
+    return {-1, ""};
   std::string out;
   char buf[4096];
   std::size_t n = 0;

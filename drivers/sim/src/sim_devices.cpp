@@ -80,7 +80,8 @@ void SimAds131Device::convert(const SimSample& s, std::uint64_t t_us) noexcept {
     }
     if (any_clip) ++injected_.range_clipped;
     if (saturate) {
-      const std::uint8_t ch = config_.transfer.channel_of_axis[sat_pick % 3] & 3u;
+      const std::uint8_t ch =
+          config_.transfer.channel_of_axis[static_cast<std::size_t>(sat_pick % 3)] & 3u;
       codes_[ch] =
           (sat_pick & 8u) != 0 ? ads131::kCodePositiveFullScale : ads131::kCodeNegativeFullScale;
       ++injected_.saturated;

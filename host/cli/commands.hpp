@@ -13,5 +13,6 @@ namespace magvec::host::cli {
 void register_simulate(CLI::App& app);
 void register_demo(CLI::App& app);
 void register_apply(CLI::App& app);
+void register_run(CLI::App& app);
 
 }  // namespace magvec::host::cli

@@ -94,6 +94,12 @@ FeedResult CanDecoder::feed(const hal::CanFrame& f) noexcept {
     return FeedResult::kIgnored;
   }
   auto malformed = [&] {
+    // A corrupt time or attitude frame ends the epoch: the next attitude frame must not be paired
+    // with a time stamp of an earlier epoch.
+    const std::uint32_t attitude_id =
+        config_.source == AttitudeMessage::kQuaternion ? ids.ekf_quat : ids.ekf_euler;
+    if (f.id == ids.ekf_info || f.id == attitude_id)
+      time_fresh_ = false;
     ++counters_.malformed;
     return FeedResult::kMalformed;
   };

@@ -9,6 +9,7 @@
 #include <fstream>
 #include <sstream>
 #include <string>
+#include <vector>
 
 #include "magvec/core/compensator.hpp"
 #include "magvec/drivers/sim/simulator.hpp"
@@ -165,6 +166,40 @@ TEST_F(Cli, DemoWritesTheSurveyAndSaysItUsesTheTruth) {
   EXPECT_NE(r.output.find("uses the TRUE simulation parameters"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("RMS error vs F"), std::string::npos);
   EXPECT_NE(r.output.find("North"), std::string::npos);
+}
+
+}  // namespace
+
+namespace {
+
+TEST_F(Cli, RunSimWritesRecordsAndCountsFaults) {
+  const std::string out = file("records.csv");
+  const Result r =
+      run("run --sim survey --duration 20 --seed 4 --faults crc=0.02,dropout=0.01 --out " + out);
+  ASSERT_EQ(r.status, 0) << r.output;
+  magvec::host::io::CsvReader reader(out);
+  const std::vector<std::string> expected{"t_s",    "hx_nT",  "hy_nT",  "hz_nT",     "hsx_nT",
+                                          "hsy_nT", "hsz_nT", "F_nT",   "hE_nT",     "hN_nT",
+                                          "hU_nT",  "flags",  "cal_id", "sigma_F_nT"};
+  EXPECT_EQ(reader.columns(), expected);
+  magvec::host::io::CsvRecord rec;
+  std::uint64_t rows = 0;
+  while (reader.next(&rec))
+    ++rows;
+  // 4000 conversions minus the CRC-rejected ones, which the summary reports.
+  const auto pos = r.output.find("crc errors ");
+  ASSERT_NE(pos, std::string::npos) << r.output;
+  const std::uint64_t crc = std::stoull(r.output.substr(pos + 11));
+  EXPECT_GT(crc, 40u);
+  EXPECT_EQ(rows + crc, 4000u);
+  EXPECT_NE(r.output.find("injected: crc " + std::to_string(crc)), std::string::npos) << r.output;
+}
+
+TEST_F(Cli, RunRejectsUnknownFaultsAndCalibrators) {
+  EXPECT_NE(run("run --sim survey --duration 1 --faults bogus=1 --out " + file("a.csv")).status, 0);
+  EXPECT_NE(run("run --sim survey --duration 1 --faults crc=2 --out " + file("a.csv")).status, 0);
+  EXPECT_NE(run("run --sim survey --duration 1 --calibrator ekf --out " + file("a.csv")).status, 0);
+  EXPECT_FALSE(fs::exists(file("a.csv")));
 }
 
 }  // namespace

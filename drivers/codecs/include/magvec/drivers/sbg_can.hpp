@@ -21,7 +21,8 @@
 // message (quaternion by default, or Euler) closes it and produces one sample stamped with the
 // epoch's INS time and the CAN receive time of the attitude frame. The latest accuracy and
 // solution status received are attached. An attitude frame without a fresh EKF_INFO is counted
-// as missing_time and dropped (no timestamp to align it with).
+// as missing_time and dropped (no timestamp to align it with). A malformed EKF_INFO or attitude
+// frame also ends the epoch, so a later attitude frame is never stamped with a stale epoch time.
 // Not verified here: the 8-byte EKF_INFO variant of newer firmware (TIME_STAMP + solution status
 // bits) is accepted as long as the first 4 bytes are the time stamp; extra bytes are ignored.
 #pragma once

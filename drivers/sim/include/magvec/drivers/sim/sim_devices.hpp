@@ -1,0 +1,306 @@
+// Simulated devices that speak the same bytes as the real ones (DESIGN.md "Drivers: simulated
+// devices"), driven by the deterministic Simulator (simulator.hpp):
+//   - SimAds131Device: TI ADS131M04 front end of a 3-axis analogue fluxgate (frame format:
+//     ads131m04.hpp) behind hal::SpiBus + hal::DataReadyLine.
+//   - SimSerialFluxgate: a fluxgate writing NMEA-like ASCII lines (serial_fluxgate.hpp) into a
+//     hal::SerialPort.
+//   - SimSbgIns: an SBG INS emitting its CAN output messages (sbg_can.hpp) on a hal::CanBus.
+//   - SimClock: the simulated hal::Clock shared by all of them; SimRig steps everything.
+// The real drivers (Ads131Fluxgate, SerialFluxgate, CanAttitudeSource) run unchanged on top.
+//
+// Fault injection (each fault from its own random stream so enabling one does not move another;
+// every injected fault is counted in the device's `injected()` so tests can compare with the
+// counters of the real driver):
+//   ADC: output-frame byte corruption (-> driver crc_errors), forced saturation of one channel
+//        (-> driver saturated), simulator dropouts (NaN).
+//        DECISION on dropouts: the ADC keeps converting and DRDY keeps toggling (it is the
+//        fluxgate electronics, not the ADC, that drops out), but the conversion is not new: the
+//        STATUS DRDY bits of all channels are clear and the channel words repeat the previous
+//        codes. The driver flags the sample kMagNotFresh; the consumer must not use it (the HIL
+//        harness turns it into a dropout record, counted by the loop). The sample cadence stays
+//        regular, so a missing DRDY edge always means a lost edge, never a dropout.
+//   Serial: garbage bytes before a line (letters, never '$' or '\n', so each one is counted as a
+//        garbage byte by the decoder), bad checksums (-> crc_errors). Dropouts: the line is not
+//        sent (the consumer sees a time gap of one period).
+//   INS: a gap (no CAN frame at all for a time window), "attitude invalid" status for a window
+//        (STATUS_03 without ATTITUDE/HEADING_VALID), CAN receive latency, corrupted frames
+//        (truncated DLC: always rejected as malformed by the decoder).
+//   Clock jumps: SimRig shifts every host timestamp (DRDY edges, CAN receive times, SimClock) by
+//        a signed amount from a given time on. A backwards jump violates the hal::Clock contract
+//        on purpose: it is the fault under test.
+// Heap-free, exception-free, noexcept, deterministic; portable (no OS headers).
+#pragma once
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <limits>
+#include <span>
+
+#include "magvec/drivers/ads131_fluxgate.hpp"
+#include "magvec/drivers/sbg_can.hpp"
+#include "magvec/drivers/serial_fluxgate.hpp"
+#include "magvec/drivers/sim/random.hpp"
+#include "magvec/drivers/sim/simulator.hpp"
+#include "magvec/hal/can_bus.hpp"
+#include "magvec/hal/clock.hpp"
+#include "magvec/hal/data_ready_line.hpp"
+#include "magvec/hal/serial_port.hpp"
+#include "magvec/hal/spi_bus.hpp"
+
+namespace magvec::drivers::sim {
+
+// Simulated monotonic clock (set by SimRig or a test; never sleeps).
+class SimClock final : public hal::Clock {
+ public:
+  std::uint64_t now_us() const noexcept override { return now_us_; }
+  void set_us(std::uint64_t t_us) noexcept { now_us_ = t_us; }
+
+ private:
+  std::uint64_t now_us_{0};
+};
+
+// Simulation time (s) -> host clock (us): host_epoch_us at t = 0, plus a signed clock jump from
+// jump_at_s on (the injected fault).
+struct HostTimeMap {
+  std::uint64_t epoch_us{10'000'000};  // room for backwards jumps
+  double jump_at_s{std::numeric_limits<double>::infinity()};
+  std::int64_t jump_us{0};
+  std::uint64_t host_us(double t_s) const noexcept;
+};
+
+// ---------------------------------------------------------------- ADS131M04 fluxgate front end
+
+struct SimAds131Faults {
+  double crc_error_probability{0};   // per data frame: one byte of the output frame corrupted
+  double saturation_probability{0};  // per conversion: one channel forced to +/- full scale
+};
+
+struct SimAds131Config {
+  // The transfer the real driver will invert: code = nT / nT_per_volt * gain / VREF * 2^23.
+  Ads131FluxgateConfig transfer{};
+  SimAds131Faults faults{};
+  std::uint64_t seed{1};
+};
+
+struct SimAds131Injected {
+  std::uint32_t conversions{0};       // DRDY edges queued
+  std::uint32_t not_fresh{0};         // conversions from a simulator dropout (DRDY bits clear)
+  std::uint32_t crc_corrupted{0};     // output frames with a corrupted byte
+  std::uint32_t saturated{0};         // conversions with a forced full-scale channel
+  std::uint32_t saturated_frames{0};  // intact data frames carrying a full-scale code of a used
+                                      // channel (what the driver must count as saturated)
+  std::uint32_t range_clipped{0};     // conversions clipped because the field exceeded the range
+  std::uint32_t frames{0};            // SPI transfers answered
+  std::uint32_t bad_commands{0};      // transfers with an unknown command or a wrong size
+};
+
+class SimAds131Device final : public hal::SpiBus, public hal::DataReadyLine {
+ public:
+  static constexpr std::size_t kEdgeQueue = 8;
+
+  explicit SimAds131Device(const SimAds131Config& config) noexcept;
+
+  // A conversion of the simulated sample completes at host time t_us: latches the codes (or, on a
+  // dropout, keeps the previous ones and clears the DRDY bits) and queues a falling DRDY edge.
+  void convert(const SimSample& s, std::uint64_t t_us) noexcept;
+
+  // hal::SpiBus: one 18-byte frame. Answers RESET (FF24h in the next frame), WREG (acknowledge
+  // in the next frame; GAIN1 is stored), NULL (STATUS + channel data), other commands (echoed
+  // as in the datasheet's "response to an unknown command": STATUS is returned).
+  hal::Status transfer(std::span<const std::uint8_t> tx,
+                       std::span<std::uint8_t> rx) noexcept override;
+  // hal::DataReadyLine: falling edges only (the line is configured for falling edges).
+  hal::Status wait_edge(hal::EdgeEvent& out, std::uint32_t timeout_us) noexcept override;
+  std::uint32_t missed_edges() const noexcept override { return missed_edges_; }
+
+  // Exact inverse of the driver's transfer, rounded to the nearest code and clamped to the ADC
+  // range; `clipped` tells whether clamping happened.
+  static std::int32_t code_from_nT(double nT, double nT_per_volt, std::uint8_t gain_code,
+                                   bool* clipped = nullptr) noexcept;
+
+  const SimAds131Injected& injected() const noexcept { return injected_; }
+  std::uint16_t gain1() const noexcept { return gain1_; }
+
+ private:
+  SimAds131Config config_;
+  Xoshiro256 crc_rng_;
+  Xoshiro256 sat_rng_;
+  SimAds131Injected injected_{};
+  std::array<std::int32_t, ads131::kChannels> codes_{};
+  std::uint16_t drdy_bits_{0};
+  std::uint16_t pending_response_{0};  // response word of the next frame
+  bool reset_flag_{true};              // STATUS.RESET until the reset acknowledge was sent
+  bool pending_is_status_{true};
+  std::uint16_t gain1_{0};
+  std::array<hal::EdgeEvent, kEdgeQueue> edges_{};
+  std::size_t edge_head_{0};
+  std::size_t edge_count_{0};
+  std::uint32_t missed_edges_{0};
+};
+
+// ---------------------------------------------------------------- serial ASCII fluxgate
+
+struct SimSerialFaults {
+  double garbage_probability{0};        // per line: garbage bytes are written before it
+  std::uint32_t garbage_max_bytes{16};  // 1..max bytes of garbage
+  double bad_checksum_probability{0};   // per line: one checksum digit wrong
+};
+
+struct SimSerialConfig {
+  AsciiLineConfig line{};
+  bool with_checksum{true};
+  SimSerialFaults faults{};
+  std::uint64_t seed{2};
+};
+
+struct SimSerialInjected {
+  std::uint32_t lines{0};          // lines written (including those with a bad checksum)
+  std::uint32_t dropouts{0};       // simulator dropouts: no line written
+  std::uint32_t garbage_bytes{0};  // garbage bytes written
+  std::uint32_t bad_checksums{0};
+  std::uint32_t overflow_bytes{0};  // bytes lost because the reader was too slow
+};
+
+class SimSerialFluxgate final : public hal::SerialPort {
+ public:
+  static constexpr std::size_t kBuffer = 1024;
+
+  explicit SimSerialFluxgate(const SimSerialConfig& config) noexcept;
+
+  // The instrument outputs the sample as one line (or nothing on a dropout).
+  void transmit(const SimSample& s) noexcept;
+
+  hal::Status read(std::span<std::uint8_t> buf, std::size_t& n_read,
+                   std::uint32_t timeout_us) noexcept override;
+  // Commands to the instrument are accepted and ignored.
+  hal::Status write(std::span<const std::uint8_t> data, std::size_t& n_written) noexcept override;
+
+  const SimSerialInjected& injected() const noexcept { return injected_; }
+  std::size_t buffered() const noexcept { return count_; }
+
+ private:
+  void put(std::uint8_t b) noexcept;
+
+  SimSerialConfig config_;
+  AsciiLineDecoder encoder_;
+  Xoshiro256 garbage_rng_;
+  Xoshiro256 checksum_rng_;
+  SimSerialInjected injected_{};
+  std::array<std::uint8_t, kBuffer> ring_{};
+  std::size_t head_{0};
+  std::size_t count_{0};
+};
+
+// ---------------------------------------------------------------- SBG INS on CAN
+
+struct SimSbgFaults {
+  double corrupt_probability{0};  // per frame: DLC truncated (decoder: malformed)
+  double gap_start_s{std::numeric_limits<double>::infinity()};  // no frames in [start, start+len)
+  double gap_length_s{0};
+  double invalid_start_s{std::numeric_limits<double>::infinity()};  // attitude invalid window
+  double invalid_length_s{0};
+};
+
+struct SimSbgConfig {
+  double rate_hz{100};                        // output rate (one epoch per period, from t = 0)
+  std::uint32_t can_latency_us{500};          // CAN receive time - epoch time
+  std::uint32_t ins_clock_offset_us{123456};  // INS time since power-on at host time 0
+  double accuracy_rad{2.6e-4};                // reported 1-sigma (about 0.015 deg)
+  std::uint32_t status01_every{10};           // STATUS_01 every N epochs
+  sbg::CanIds ids{};
+  SimSbgFaults faults{};
+  std::uint64_t seed{3};
+};
+
+struct SimSbgInjected {
+  std::uint32_t epochs{0};          // epochs with attitude frames sent
+  std::uint32_t gap_epochs{0};      // epochs not sent (gap)
+  std::uint32_t invalid_epochs{0};  // epochs sent with attitude invalid
+  std::uint32_t corrupted_frames{0};
+  std::uint32_t corrupted_epochs{0};  // epochs whose attitude sample the decoder cannot produce
+  std::uint32_t frames{0};            // frames queued
+  std::uint32_t overflow_frames{0};   // frames lost because the bus queue was full
+  std::uint32_t sent_by_host{0};      // frames the host sent to the INS (ignored)
+};
+
+class SimSbgIns final : public hal::CanBus {
+ public:
+  static constexpr std::size_t kQueue = 64;
+
+  SimSbgIns(Simulator& sim, const SimSbgConfig& config) noexcept;
+
+  // Emits every epoch with epoch time <= t_s (simulation time). Host timestamps of the frames
+  // are time.host_us(epoch time) + CAN latency.
+  void run_until(double t_s, const HostTimeMap& time = {}) noexcept;
+
+  hal::Status receive(hal::CanFrame& out, std::uint32_t timeout_us) noexcept override;
+  hal::Status send(const hal::CanFrame& frame) noexcept override;
+
+  const SimSbgInjected& injected() const noexcept { return injected_; }
+  double period_s() const noexcept { return 1.0 / config_.rate_hz; }
+
+ private:
+  void emit_epoch(std::uint64_t k, const HostTimeMap& time) noexcept;
+  void push(hal::CanFrame f, std::uint64_t t_us, std::uint8_t min_dlc, bool* corrupted) noexcept;
+
+  Simulator& sim_;
+  SimSbgConfig config_;
+  Xoshiro256 corrupt_rng_;
+  SimSbgInjected injected_{};
+  std::uint64_t next_epoch_{0};
+  std::array<hal::CanFrame, kQueue> queue_{};
+  std::size_t head_{0};
+  std::size_t count_{0};
+};
+
+// ---------------------------------------------------------------- the rig
+
+enum class MagLink : std::uint8_t { kSpi, kSerial };
+
+struct SimRigConfig {
+  MagLink link{MagLink::kSpi};
+  SimAds131Config adc{};
+  SimSerialConfig serial{};
+  SimSbgConfig ins{};
+  // The loop processes a magnetometer sample once the INS epochs up to t + ins_lead_s have been
+  // emitted, so the attitude can be interpolated instead of extrapolated (a fixed output delay).
+  double ins_lead_s{0.02};
+  HostTimeMap time{};  // clock jump fault: time.jump_at_s, time.jump_us
+};
+
+// Owns the three devices and the clock; step() advances the simulation by one magnetometer
+// sample: INS frames up to t + lead, then the conversion (SPI) or the line (serial).
+class SimRig {
+ public:
+  SimRig(Simulator& sim, const SimRigConfig& config) noexcept;
+
+  bool step() noexcept;  // false when the scenario is finished
+
+  // Host timestamp of simulation time t_s (including an injected clock jump).
+  std::uint64_t host_us(double t_s) const noexcept { return config_.time.host_us(t_s); }
+
+  SimClock& clock() noexcept { return clock_; }
+  SimAds131Device& adc() noexcept { return adc_; }
+  SimSerialFluxgate& serial() noexcept { return serial_; }
+  SimSbgIns& ins() noexcept { return ins_; }
+  const SimSample& last() const noexcept { return last_; }
+  const SimRigConfig& config() const noexcept { return config_; }
+  Simulator& simulator() noexcept { return sim_; }
+  std::uint32_t clock_jumps_injected() const noexcept { return jumps_; }
+  std::uint32_t steps() const noexcept { return steps_; }
+
+ private:
+  Simulator& sim_;
+  SimRigConfig config_;
+  SimClock clock_;
+  SimAds131Device adc_;
+  SimSerialFluxgate serial_;
+  SimSbgIns ins_;
+  SimSample last_{};
+  std::uint32_t jumps_{0};
+  std::uint32_t steps_{0};
+  bool jumped_{false};
+};
+
+}  // namespace magvec::drivers::sim

@@ -66,6 +66,23 @@ void BM_IntensitySigma(benchmark::State& state) {
   }
 }
 
+// One-off cost of the start: buffering init_samples samples and the quadric + Gauss-Newton fit.
+template <typename Scalar>
+void BM_InitialFit(benchmark::State& state) {
+  const auto data = samples<Scalar>(64);
+  EkfConfig<Scalar> cfg;
+  cfg.noise_sigma_nT = Scalar(200);
+  for (auto _ : state) {
+    ScalarEkf<Scalar> ekf(cfg);
+    for (const auto& m : data)
+      ekf.update(m, Scalar(kF));
+    benchmark::DoNotOptimize(ekf.initialised());
+  }
+  state.counters["filter_bytes"] = static_cast<double>(sizeof(ScalarEkf<Scalar>));
+}
+
+BENCHMARK_TEMPLATE(BM_InitialFit, float);
+BENCHMARK_TEMPLATE(BM_InitialFit, double);
 BENCHMARK_TEMPLATE(BM_EkfUpdate, float)->Arg(1)->Arg(2);
 BENCHMARK_TEMPLATE(BM_EkfUpdate, double)->Arg(1)->Arg(2);
 BENCHMARK_TEMPLATE(BM_IntensitySigma, float);

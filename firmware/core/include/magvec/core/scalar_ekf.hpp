@@ -111,10 +111,19 @@ struct EkfConfig {
   // Initial quadric fit (kQuadricFit).
   int init_samples = 64;  // <= the filter's init capacity
   int init_gauss_newton_iterations = 4;
+  // A sample enters the initial fit only if it differs from the last one taken by this fraction of
+  // the reference field, so a slowly turning platform still gets a spread set (others are skipped).
+  Scalar init_min_step{Scalar(0.2)};
+  // The initial fit is refused (poor coverage) if any predicted 1-sigma exceeds this fraction of
+  // the field scale (C^-1 elements are dimensionless, b relative to the scale).
+  Scalar init_max_sigma{Scalar(0.02)};
   // Innovation gate on NIS = nu^2 / S (chi-square, 1 dof); <= 0 disables. 25 = 5 sigma.
   Scalar gate_nis{25};
   // Divergence detection over windows of nis_window updates (accepted + gated).
   bool divergence_detection = true;
+  // After a detected divergence, restart from a fit of new samples even when init_mode is kGiven
+  // (restarting from the same given start would usually diverge the same way).
+  bool reinit_from_fit = true;
   int nis_window = 100;
   Scalar nis_mean_limit{4};  // expected 1; the window mean has SD sqrt(2/window)
   Scalar gated_fraction_limit{Scalar(0.5)};
@@ -259,6 +268,7 @@ class ScalarEkf {
     counters_ = EkfCounters{};
     last_reset_ = EkfResetReason::kNone;
     scale_ = 0;
+    use_fit_ = cfg_.init_mode == EkfInitMode::kQuadricFit;
     x_.setZero();
     x_.template head<9>() = flatten(cfg_.w0);
     restart();
@@ -272,7 +282,11 @@ class ScalarEkf {
     window_gated_ = 0;
     window_nis_sum_ = 0;
     last_nis_ = 0;
-    if (cfg_.init_mode == EkfInitMode::kGiven && scale_ > 0)
+    // Until a start exists the covariance is "unknown" (unit variance in normalised units); the
+    // last state estimate is kept so model() still returns the best known calibration.
+    u_.setIdentity();
+    d_.setOnes();
+    if (!use_fit_ && scale_ > 0)
       start_given();
   }
 
@@ -303,6 +317,9 @@ class ScalarEkf {
     }
     const Scalar z = fn * fn;
     if (!initialised_) {
+      if (n_buf_ > 0 && (m - buf_m_.col(n_buf_ - 1)).norm() < cfg_.init_min_step * fn) {
+        return EkfStatus::kCollecting;
+      }
       buf_m_.col(n_buf_) = m;
       buf_f_(n_buf_) = fn;
       ++n_buf_;
@@ -579,6 +596,8 @@ class ScalarEkf {
   EkfStatus reinitialise(EkfResetReason reason) noexcept {
     last_reset_ = reason;
     ++counters_.reinitialisations;
+    if (cfg_.reinit_from_fit)
+      use_fit_ = true;
     if (!x_.allFinite())
       x_ = flatten_state(cfg_.w0, cfg_.b0_nT / scale_or_one());
     restart();
@@ -710,14 +729,28 @@ class ScalarEkf {
       const Eigen::LDLT<StateMat> ldlt(info);
       const StateMat p0 = ldlt.solve(StateMat::Identity());
       ok = ldlt.info() == Eigen::Success && ldlt.isPositive() && p0.allFinite() &&
-           ud_factorise(p0) && c_inv().determinant() > 0;
+           sigma_acceptable(p0) && c_inv().determinant() > 0 && ud_factorise(p0);
     }
     if (!ok) {
       x_ = x_before;
+      u_.setIdentity();
+      d_.setOnes();
       return false;
     }
     counters_.init_outliers += static_cast<std::uint32_t>(dropped);
     return true;
+  }
+
+  // Predicted 1-sigma of every state below init_max_sigma (C^-1 elements; b relative to the field).
+  bool sigma_acceptable(const StateMat& p0) const noexcept {
+    Scalar f_mean{0};
+    for (int i = 0; i < n_buf_; ++i)
+      f_mean += buf_f_(i);
+    f_mean /= static_cast<Scalar>(n_buf_);
+    const Scalar lim_w = cfg_.init_max_sigma * cfg_.init_max_sigma;
+    const Scalar lim_b = lim_w * f_mean * f_mean;
+    return p0.diagonal().template head<9>().maxCoeff() < lim_w &&
+           p0.diagonal().template tail<3>().maxCoeff() < lim_b;
   }
 
   // P = U D U^T with U unit upper triangular. False unless P is positive definite.
@@ -748,6 +781,7 @@ class ScalarEkf {
   EkfResetReason last_reset_ = EkfResetReason::kNone;
   Scalar scale_{0};
   bool initialised_ = false;
+  bool use_fit_ = true;  // start from the initial fit (else from the configured start)
   StateVec x_ = StateVec::Zero();
   StateMat u_ = StateMat::Identity();
   StateVec d_ = StateVec::Ones();

@@ -14,5 +14,6 @@ void register_simulate(CLI::App& app);
 void register_demo(CLI::App& app);
 void register_apply(CLI::App& app);
 void register_run(CLI::App& app);
+void register_report(CLI::App& app);
 
 }  // namespace magvec::host::cli

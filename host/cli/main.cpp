@@ -15,6 +15,7 @@ int main(int argc, char** argv) {
   magvec::host::cli::register_demo(app);
   magvec::host::cli::register_apply(app);
   magvec::host::cli::register_run(app);
+  magvec::host::cli::register_report(app);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

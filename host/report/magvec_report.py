@@ -109,7 +109,7 @@ def fig_residual(rep, data, out):
         ax.set_title(f"{title}: RMS {st['rms']:.3f} nT, mean {st['mean']:.3f} nT, "
                      f"n = {st['n']}", fontsize=11)
         ax.grid(alpha=0.3)
-        ax.legend(loc="upper right", fontsize=8)
+        ax.legend(loc="best", fontsize=8, framealpha=0.8)
     axes[1].set_xlabel("t [s]")
     fig.suptitle(f"Total-field residual against the reference F "
                  f"({rep['file_counts']['bucket_rows']} rows per bucket)", fontsize=11)
@@ -326,8 +326,9 @@ def write_html(rep, out, figures):
 
     p.append("<h2>Figures</h2>\n")
     for f in figures:
-        p.append(f"<figure><img src=\"{e(f)}\" alt=\"{e(CAPTIONS[f])}\" loading=\"eager\">"
-                 f"<figcaption>{e(CAPTIONS[f])}</figcaption></figure>\n")
+        # The image links to itself: on a phone, a tap opens it full size.
+        p.append(f"<figure><a href=\"{e(f)}\"><img src=\"{e(f)}\" alt=\"{e(CAPTIONS[f])}\"></a>"
+                 f"<figcaption>{e(CAPTIONS[f])} (tap for full size)</figcaption></figure>\n")
     if "fig_enu.png" not in figures:
         p.append("<p class=\"note\">3. E/N/U components: the data file has no attitude.</p>\n")
     if "fig_ekf.png" not in figures:

@@ -364,6 +364,41 @@ TEST_F(TempDir, DataFilesHoldResidualsEllipsoidAndSubsampledSamples) {
   }
 }
 
+TEST_F(TempDir, ReferenceFieldFromOptionWhenTheFileHasNoF) {
+  magvec::drivers::sim::ScenarioConfig cfg = magvec::drivers::sim::scenario_li2023();
+  cfg.num_samples = 400;
+  cfg.mag_noise_nT = 0.0;
+  {
+    magvec::drivers::sim::Simulator sim(cfg, 11);
+    magvec::host::io::CsvWriter w(file("nof.csv"), {"t_s", "hx_nT", "hy_nT", "hz_nT"});
+    magvec::drivers::sim::SimSample s;
+    while (sim.next(&s)) {
+      const double row[] = {s.t_s, s.m_nT(0), s.m_nT(1), s.m_nT(2)};
+      w.write_row(row);
+    }
+    w.commit();
+  }
+  magvec::host::CalibrationFile cal;
+  cal.model = cfg.truth;
+  magvec::host::write_calibration_file(file("cal.json"), cal);
+  rp::ReportOptions o;
+  o.cal_path = file("cal.json");
+  o.in_path = file("nof.csv");
+  o.out_dir = file("a");
+  // No reference: no residual figure, and the sphere radius is the mean calibrated intensity.
+  rp::ReportResult r = rp::write_report_data(o);
+  EXPECT_EQ(r.figures, (std::vector<std::string>{"fig_ellipsoid.png", "fig_coverage.png"}));
+  EXPECT_TRUE(std::isnan(r.rms_after_nT));
+  EXPECT_NE(slurp(file("a/data/report.json")).find("mean calibrated intensity"), std::string::npos);
+  o.field_nT = cfg.h_n_nT.norm();
+  o.out_dir = file("b");
+  r = rp::write_report_data(o);
+  EXPECT_EQ(r.figures, (std::vector<std::string>{"fig_ellipsoid.png", "fig_residual.png",
+                                                 "fig_coverage.png"}));
+  EXPECT_LT(r.rms_after_nT, 1e-6);  // noise-free scenario, exact calibration
+  EXPECT_NE(slurp(file("b/data/report.json")).find("--field-nT"), std::string::npos);
+}
+
 TEST_F(TempDir, BadInputsAreClearErrors) {
   rp::ReportOptions o;
   o.cal_path = file("none.json");

@@ -174,7 +174,7 @@ std::size_t col(const rp::TraceTable& t, const std::string& name) {
   return 0;
 }
 
-class TempDir : public ::testing::Test {
+class ReportData : public ::testing::Test {
  protected:
   void SetUp() override {
     std::string templ = (fs::temp_directory_path() / "magvec_report_XXXXXX").string();
@@ -254,7 +254,7 @@ TEST(ParameterTable, PaperFormsWithSigmaFromCalJson) {
   EXPECT_EQ(rows.size(), 12u + 12u + 3u);  // Li, Ge, h_n; no sine block
 }
 
-TEST_F(TempDir, TraceColumnsPairWithTheirSigmas) {
+TEST_F(ReportData, TraceColumnsPairWithTheirSigmas) {
   std::ofstream(file("t.csv")) << "# c\nupdate, t_s, status, cinv00, b_x_nT, sigma_cinv00, "
                                   "sigma_b_x, extra, nis\n0,0,ok,1,0,0.1,5,nan,1\n1,0.1,bad,1.1,"
                                   "2,0.05,4,3,0.9\n";
@@ -301,7 +301,7 @@ void write_sim(const std::string& path, magvec::drivers::sim::ScenarioConfig cfg
   w.commit();
 }
 
-TEST_F(TempDir, DataFilesHoldResidualsEllipsoidAndSubsampledSamples) {
+TEST_F(ReportData, DataFilesHoldResidualsEllipsoidAndSubsampledSamples) {
   magvec::drivers::sim::ScenarioConfig cfg = magvec::drivers::sim::scenario_li2023();
   cfg.num_samples = 5000;
   cfg.mag_noise_nT = 0.5;
@@ -364,7 +364,7 @@ TEST_F(TempDir, DataFilesHoldResidualsEllipsoidAndSubsampledSamples) {
   }
 }
 
-TEST_F(TempDir, ReferenceFieldFromOptionWhenTheFileHasNoF) {
+TEST_F(ReportData, ReferenceFieldFromOptionWhenTheFileHasNoF) {
   magvec::drivers::sim::ScenarioConfig cfg = magvec::drivers::sim::scenario_li2023();
   cfg.num_samples = 400;
   cfg.mag_noise_nT = 0.0;
@@ -399,7 +399,7 @@ TEST_F(TempDir, ReferenceFieldFromOptionWhenTheFileHasNoF) {
   EXPECT_NE(slurp(file("b/data/report.json")).find("--field-nT"), std::string::npos);
 }
 
-TEST_F(TempDir, BadInputsAreClearErrors) {
+TEST_F(ReportData, BadInputsAreClearErrors) {
   rp::ReportOptions o;
   o.cal_path = file("none.json");
   o.in_path = file("none.csv");
@@ -420,7 +420,7 @@ TEST_F(TempDir, BadInputsAreClearErrors) {
 // --------------------------------------------------------------------------------------------
 // The whole report through the CLI
 
-class ReportCli : public TempDir {
+class ReportCli : public ReportData {
  protected:
   // A survey recording through `magvec simulate` (20 Hz, 6600 rows), a calibration near the
   // truth and a synthetic EKF trace, then `magvec report`.

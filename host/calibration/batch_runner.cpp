@@ -8,8 +8,6 @@
 namespace magvec::host {
 namespace {
 
-using Calibrator = core::BatchCalibrator<double, kHostBatchCapacity>;
-
 std::string f2(double v, int decimals) {
   char buf[64];
   std::snprintf(buf, sizeof(buf), "%.*f", decimals, v);
@@ -81,44 +79,14 @@ std::string batch_verdict_reason(const core::BatchResult<double>& r,
 }
 
 BatchRun run_batch(io::CsvReader& reader, const BatchRunOptions& opt) {
-  BatchRun run;
-  run.needs_attitude = opt.method != core::BatchMethod::kEllipsoidOnly;
-  // A BatchCalibrator is a large fixed-size object (kHostBatchCapacity samples): one heap block.
-  auto cal = std::make_unique<Calibrator>(opt.config);
-  io::CsvRecord rec;
-  while (reader.next(&rec)) {
-    ++run.rows;
-    const double f = rec.f_nT ? *rec.f_nT : std::nan("");
-    if (run.needs_attitude && rec.r_bn) {
-      cal->add_sample(rec.m_nT, f, *rec.r_bn);
-    } else {
-      if (run.needs_attitude && !rec.dropout) ++run.rows_without_attitude;
-      cal->add_sample(rec.m_nT, f);
-    }
-  }
-  if (cal->counts().dropped_full > 0) {
-    throw CapacityError(
-        reader.path() + ": " + std::to_string(cal->counts().added + cal->counts().dropped_full) +
-        " usable rows, more than the batch capacity of " + std::to_string(kHostBatchCapacity) +
-        " rows (" + std::to_string(cal->counts().dropped_full) +
-        " would be dropped): decimate or split the recording");
-  }
-  run.result = cal->solve(opt.method);
+  return run_batch_with_capacity<kHostBatchCapacity>(reader, opt);
+}
+
+namespace detail {
+
+void fill_batch_file(const io::CsvReader& reader, const BatchRunOptions& opt, BatchRun* run_ptr) {
+  BatchRun& run = *run_ptr;
   const core::BatchResult<double>& r = run.result;
-  run.reason = batch_verdict_reason(r, opt.config);
-
-  // Evaluate over the samples the fit used (outliers and, for attitude methods, rows without
-  // attitude excluded).
-  Evaluator ev(r.model, run.needs_attitude);
-  const auto& store = cal->store();
-  for (std::size_t i = 0; i < store.size(); ++i) {
-    const auto& s = store[i];
-    if (s.outlier() || (run.needs_attitude && !s.has_attitude())) continue;
-    const core::Mat3<double> r_bn = s.r_bn();
-    ev.add(s.raw(), s.f, s.has_attitude() ? &r_bn : nullptr);
-  }
-  run.eval = ev.result();
-
   CalibrationFile& c = run.cal;
   c.model = r.model;
   if (r.has_h_n) c.h_n_nT = r.h_n_nT;
@@ -157,7 +125,8 @@ BatchRun run_batch(io::CsvReader& reader, const BatchRunOptions& opt) {
   c.counts.rejected_outliers = r.counts.outliers;
   c.provenance.input = reader.path();
   c.provenance.method = opt.method_name;
-  return run;
 }
+
+}  // namespace detail
 
 }  // namespace magvec::host

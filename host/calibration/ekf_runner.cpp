@@ -203,7 +203,8 @@ EkfRun run_ekf(const std::string& path, const io::CsvReaderOptions& reader_optio
 
   // Li form of the result and its 1-sigma by linear propagation of the state covariance.
   core::LiParams<double> li;
-  run.li_ok = core::to_li(run.model, &li) == core::ConversionStatus::kOk;
+  const core::ConversionStatus li_status = core::to_li(run.model, &li);
+  run.li_ok = li_status == core::ConversionStatus::kOk;
   if (run.li_ok) {
     run.li = li;
     core::Vec<double, 9> p0;
@@ -266,6 +267,11 @@ EkfRun run_ekf(const std::string& path, const io::CsvReaderOptions& reader_optio
   } else if (!run.model.w.allFinite() || !run.model.o.allFinite() || !run.sigma.allFinite()) {
     run.verdict = "ill_conditioned";
     run.reason = "the state or its covariance is not finite";
+  } else if (li_status == core::ConversionStatus::kReflection) {
+    run.verdict = "reflected_solution";
+    run.reason =
+        "C^-1 ended with a negative determinant (a reflection, ERRATA 002-3): G may fit "
+        "but no rotation maps the compensated vector to the body frame";
   } else if (!run.li_ok) {
     run.verdict = "not_an_ellipsoid";
     run.reason = "G = C^-T C^-1 is not positive definite";

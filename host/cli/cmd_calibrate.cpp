@@ -68,7 +68,8 @@ std::string mat3(const core::Mat3<double>& m, int decimals) {
          ", " + vec3(m.row(2).transpose(), decimals) + "]";
 }
 
-void print_evaluation(const Evaluation& e, bool vector_method) {
+// no_enu: why there are no E/N/U figures when e.has_enu is false.
+void print_evaluation(const Evaluation& e, const std::string& no_enu) {
   if (e.n_intensity > 0) {
     std::cout << "  intensity residual |h| - F, RMS over " << e.n_intensity << " samples: before "
               << fixed(e.intensity_rms_before_nT, 3) << " nT, after "
@@ -81,11 +82,8 @@ void print_evaluation(const Evaluation& e, bool vector_method) {
     std::cout << "  E/N/U component spread (SD over " << e.n_enu << " samples): before "
               << vec3(e.enu_sd_before_nT, 1) << " nT (raw m rotated by R_bn^T), after "
               << vec3(e.enu_sd_after_nT, 3) << " nT\n";
-  } else if (vector_method) {
-    std::cout << "  E/N/U component spread: not available (no attitude in the input)\n";
   } else {
-    std::cout << "  E/N/U component spread: not available (this method determines W only up to "
-                 "a rotation)\n";
+    std::cout << "  E/N/U component spread: not available (" << no_enu << ")\n";
   }
 }
 
@@ -178,7 +176,8 @@ CalibrationFile run_batch_method(const CalibrateOptions& o, core::BatchMethod me
     std::cout << "  Ge 2017 form: C^-1 = " << mat3(ge.c_inv, 6) << ", b = " << vec3(ge.b, 3)
               << " nT\n";
   }
-  print_evaluation(run.eval, need_att);
+  print_evaluation(run.eval, need_att ? "no attitude in the input"
+                                      : "the ellipsoid fit determines W only up to a rotation");
   if (need_att) {
     std::cout << "  pitch/roll spread " << fixed(r.quality.tilt_spread_deg, 2) << " deg";
     if (method == core::BatchMethod::kOneStep)
@@ -225,7 +224,7 @@ CalibrationFile run_sine_method(const CalibrateOptions& o) {
               << "  sweep fit RMS per axis: XY " << vec3(run.solution.xy.rms, 2) << " nT, XZ "
               << vec3(run.solution.xz.rms, 2) << " nT\n";
   }
-  print_evaluation(run.eval, false);
+  print_evaluation(run.eval, "the sine fit works in the fixture frame, not the INS frame");
   return run.cal;
 }
 
@@ -277,7 +276,7 @@ CalibrationFile run_ekf_method(const CalibrateOptions& o) {
   }
   if (!o.trace.empty())
     std::cout << "  trace: " << run.trace_rows << " rows -> " << o.trace << "\n";
-  print_evaluation(run.eval, false);
+  print_evaluation(run.eval, "the EKF determines W only up to a rotation");
   return run.cal;
 }
 

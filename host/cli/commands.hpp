@@ -4,6 +4,9 @@
 // itself, std::exception otherwise); main prints the message and exits non-zero.
 #pragma once
 
+#include <stdexcept>
+#include <string>
+
 namespace CLI {
 class App;
 }
@@ -15,5 +18,18 @@ void register_demo(CLI::App& app);
 void register_apply(CLI::App& app);
 void register_run(CLI::App& app);
 void register_report(CLI::App& app);
+void register_calibrate(CLI::App& app);
+
+// Thrown by a subcommand that must end with a specific exit status (e.g. calibrate: 2 bad input,
+// 3 refused calibration); main prints what() (when not empty) and returns status().
+class CommandExit : public std::runtime_error {
+ public:
+  CommandExit(int status, const std::string& message)
+      : std::runtime_error(message), status_(status) {}
+  int status() const noexcept { return status_; }
+
+ private:
+  int status_;
+};
 
 }  // namespace magvec::host::cli

@@ -16,10 +16,14 @@ int main(int argc, char** argv) {
   magvec::host::cli::register_apply(app);
   magvec::host::cli::register_run(app);
   magvec::host::cli::register_report(app);
+  magvec::host::cli::register_calibrate(app);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
     return app.exit(e);
+  } catch (const magvec::host::cli::CommandExit& e) {
+    if (e.what()[0] != '\0') std::cerr << "magvec: error: " << e.what() << "\n";
+    return e.status();
   } catch (const std::exception& e) {
     std::cerr << "magvec: error: " << e.what() << "\n";
     return 1;

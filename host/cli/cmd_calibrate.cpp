@@ -1,0 +1,371 @@
+// `magvec calibrate`: calibrates a recording with one of the estimators and writes cal.json.
+//   li-ml     one-step 14-parameter weighted fit (Li et al. 2023 as corrected by ERRATA 000-6)
+//   li        ellipsoid fit + plane compression (Li's two-step method, ERRATA 000-2/3)
+//   li-joint  ellipsoid fit + joint fit of Rm and h_n (ERRATA 000-5)
+//   ellipsoid ellipsoid fit only (no attitude needed; W up to a rotation, Rm identity)
+//   sine      turntable sine fitting from an XY and an XZ sweep (seed 001, ERRATA 001)
+//   ekf       the 12-state scalar EKF of Ge et al. 2017 (ERRATA 002)
+// The estimators run through the host/calibration runners (shared with the daemon and reports);
+// this file parses options and prints the human summary. Exit status: 0 ok, 2 bad input (the
+// message names file, line and column), 3 calibration refused (verdict not ok). cal.json is written
+// only for verdict ok, unless --force-write.
+#include <CLI/CLI.hpp>
+#include <cmath>
+#include <iostream>
+#include <limits>
+#include <map>
+#include <memory>
+#include <optional>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "calibration/batch_runner.hpp"
+#include "calibration/calibration_file.hpp"
+#include "calibration/ekf_runner.hpp"
+#include "calibration/sine_runner.hpp"
+#include "commands.hpp"
+#include "magvec/host/io/csv.hpp"
+#include "magvec/version.hpp"
+#include "stats.hpp"
+
+namespace magvec::host::cli {
+namespace {
+
+constexpr double kDeg = 180.0 / core::kPi<double>;
+
+struct CalibrateOptions {
+  std::string method = "li-ml";
+  std::string in_path;
+  std::string sweep_xz;
+  std::string out_path;
+  std::string fixture;
+  std::string trace;
+  double field_nT = std::numeric_limits<double>::quiet_NaN();
+  double noise_nT = std::numeric_limits<double>::quiet_NaN();
+  double ins_noise_deg = 0.015;
+  double fix_heading_deg = std::numeric_limits<double>::quiet_NaN();
+  int passes = 1;
+  bool paper_settings = false;
+  bool float32 = false;
+  bool force_write = false;
+};
+
+// "v +- s" with the given decimals.
+std::string pm(double v, double s, int decimals) {
+  return fixed(v, decimals) + " +- " + fixed(s, decimals);
+}
+std::string pm3(const core::Vec3<double>& v, const core::Vec3<double>& s, int decimals) {
+  return "[" + pm(v(0), s(0), decimals) + ", " + pm(v(1), s(1), decimals) + ", " +
+         pm(v(2), s(2), decimals) + "]";
+}
+std::string vec3(const core::Vec3<double>& v, int decimals) {
+  return "[" + fixed(v(0), decimals) + ", " + fixed(v(1), decimals) + ", " + fixed(v(2), decimals) +
+         "]";
+}
+std::string mat3(const core::Mat3<double>& m, int decimals) {
+  return "[" + vec3(m.row(0).transpose(), decimals) + ", " + vec3(m.row(1).transpose(), decimals) +
+         ", " + vec3(m.row(2).transpose(), decimals) + "]";
+}
+
+// no_enu: why there are no E/N/U figures when e.has_enu is false.
+void print_evaluation(const Evaluation& e, const std::string& no_enu) {
+  if (e.n_intensity > 0) {
+    std::cout << "  intensity residual |h| - F, RMS over " << e.n_intensity << " samples: before "
+              << fixed(e.intensity_rms_before_nT, 3) << " nT, after "
+              << fixed(e.intensity_rms_after_nT, 3) << " nT (mean "
+              << fixed(e.intensity_mean_after_nT, 3) << " nT)\n";
+  } else {
+    std::cout << "  intensity residual: no reference total field\n";
+  }
+  if (e.has_enu) {
+    std::cout << "  E/N/U component spread (SD over " << e.n_enu << " samples): before "
+              << vec3(e.enu_sd_before_nT, 1) << " nT (raw m rotated by R_bn^T), after "
+              << vec3(e.enu_sd_after_nT, 3) << " nT\n";
+  } else {
+    std::cout << "  E/N/U component spread: not available (" << no_enu << ")\n";
+  }
+}
+
+void print_li(const core::LiParams<double>& li, const core::LiSigmas<double>* s, bool with_rm) {
+  const core::LiSigmas<double> zero{};
+  const core::LiSigmas<double>& sg = s != nullptr ? *s : zero;
+  const char* note = s != nullptr ? "" : " (1-sigma not available for this method)";
+  std::cout << "  Li 2023 form" << note << ":\n"
+            << "    ks             " << pm3(li.ks, sg.ks, 6) << "\n"
+            << "    O1..O3 deg     " << pm3(li.o_rad * kDeg, sg.o_rad * kDeg, 5) << "\n"
+            << "    Kof nT         " << pm3(li.kof, sg.kof, 3) << "\n";
+  if (with_rm) {
+    std::cout << "    am,bm,gm deg   " << pm3(li.rm_rad * kDeg, sg.rm_rad * kDeg, 5) << "\n";
+  }
+}
+
+void print_counts(const CalibrationCounts& c, const std::string& extra) {
+  std::cout << "  rows " << c.samples << ", used " << c.used << ", skipped (nan) "
+            << c.skipped_nonfinite << ", rejected (outliers/gated) " << c.rejected_outliers << extra
+            << "\n";
+}
+
+void print_verdict(const CalibrationQuality& q) {
+  std::cout << "  coverage " << fixed(100.0 * q.coverage, 1) << " % of the sphere (32 cells)";
+  if (q.condition > 0) {
+    char buf[64];
+    std::snprintf(buf, sizeof(buf), "%.3g", q.condition);
+    std::cout << ", condition number " << buf;
+  }
+  std::cout << "\n  verdict: " << q.verdict << " (" << q.reason << ")\n";
+}
+
+CalibrationFile run_batch_method(const CalibrateOptions& o, core::BatchMethod method) {
+  io::CsvReaderOptions ropt;
+  if (std::isfinite(o.field_nT)) ropt.f_nT = o.field_nT;
+  io::CsvReader reader(o.in_path, ropt);
+  if (!reader.has_f() && !std::isfinite(o.field_nT)) {
+    throw CommandExit(2, o.in_path + ": no F_nT column: give the total field with --field-nT");
+  }
+  const bool need_att = method != core::BatchMethod::kEllipsoidOnly;
+  if (need_att && reader.attitude_columns() == io::AttitudeColumns::kNone) {
+    throw CommandExit(2, o.in_path +
+                             ": no attitude columns (alpha/beta/gamma_deg, "
+                             "yaw/pitch/roll_deg or qw..qz): --method " +
+                             o.method + " needs the INS attitude; use --method ellipsoid");
+  }
+  BatchRunOptions bo;
+  bo.method = method;
+  bo.method_name = o.method;
+  bo.config.field_nT = o.field_nT;
+  bo.config.mag_noise_nT = std::isfinite(o.noise_nT) ? o.noise_nT : 0.3;
+  bo.config.attitude_noise_deg = o.ins_noise_deg;
+  if (reader.attitude_columns() == io::AttitudeColumns::kQuaternion)
+    bo.config.attitude_model = core::AttitudeNoiseModel::kIsotropic;
+  if (std::isfinite(o.fix_heading_deg)) {
+    bo.config.fix_heading_misalignment = true;
+    bo.config.fixed_heading_misalignment_deg = o.fix_heading_deg;
+  }
+  const BatchRun run = run_batch(reader, bo);
+  const core::BatchResult<double>& r = run.result;
+  static const std::map<std::string, std::string> kTitle = {
+      {"li-ml", "one-step 14-parameter weighted fit (Li 2023, ERRATA 000-6)"},
+      {"li", "ellipsoid + plane compression (Li 2023 two-step, ERRATA 000-2/3)"},
+      {"li-joint", "ellipsoid + joint Rm/h_n fit (ERRATA 000-5)"},
+      {"ellipsoid", "ellipsoid fit only (W up to a rotation, no misalignment)"}};
+  std::cout << "magvec calibrate: method " << o.method << ": " << kTitle.at(o.method) << "\n"
+            << "  input " << o.in_path << "; noise " << fixed(bo.config.mag_noise_nT, 3)
+            << " nT/axis";
+  if (need_att) std::cout << ", INS " << fixed(bo.config.attitude_noise_deg, 4) << " deg/angle";
+  std::cout << "\n";
+  print_counts(run.cal.counts,
+               need_att ? ", without attitude " + std::to_string(run.rows_without_attitude) : "");
+  if (r.verdict == core::Verdict::kOk || r.verdict == core::Verdict::kResidualTooLarge ||
+      r.verdict == core::Verdict::kFieldMismatch ||
+      r.verdict == core::Verdict::kInsufficientCoverage) {
+    print_li(r.li, method == core::BatchMethod::kOneStep ? &r.sigma : nullptr, need_att);
+    if (method == core::BatchMethod::kPlaneCompression || method == core::BatchMethod::kJoint) {
+      std::cout << "    (two-step: 1-sigma of the misalignment only)\n"
+                << "    am,bm,gm sigma " << vec3(r.sigma.rm_rad * kDeg, 5) << " deg\n";
+    }
+    if (r.heading_fixed) {
+      std::cout << "    am held at " << fixed(o.fix_heading_deg, 4)
+                << " deg (--fix-heading-misalignment-deg)\n";
+    }
+    if (r.has_h_n) {
+      std::cout << "    h_n nT (E,N,U) " << pm3(r.h_n_nT, r.h_n_sigma_nT, 2) << ", |h_n| "
+                << fixed(r.h_n_nT.norm(), 2) << "\n";
+    }
+    const core::GeParams<double> ge = core::to_ge(r.model);
+    std::cout << "  Ge 2017 form: C^-1 = " << mat3(ge.c_inv, 6) << ", b = " << vec3(ge.b, 3)
+              << " nT\n";
+  }
+  print_evaluation(run.eval, need_att ? "no attitude in the input"
+                                      : "the ellipsoid fit determines W only up to a rotation");
+  if (need_att) {
+    std::cout << "  pitch/roll spread " << fixed(r.quality.tilt_spread_deg, 2) << " deg";
+    if (method == core::BatchMethod::kOneStep)
+      std::cout << ", chi2/dof " << fixed(r.quality.chi2_per_dof, 3);
+    std::cout << "\n";
+  }
+  return run.cal;
+}
+
+CalibrationFile run_sine_method(const CalibrateOptions& o) {
+  io::CsvReaderOptions ropt;
+  if (std::isfinite(o.field_nT)) ropt.f_nT = o.field_nT;
+  io::CsvReader xy(o.in_path, ropt);
+  io::CsvReader xz(o.sweep_xz, ropt);
+  SineRunOptions so;
+  so.fixture =
+      o.fixture == "housing-y" ? core::SineFixture::kHousingY : core::SineFixture::kPlaneNormal;
+  if (std::isfinite(o.field_nT)) so.field_nT = o.field_nT;
+  so.noise_nT = std::isfinite(o.noise_nT) ? o.noise_nT : 5.0;
+  SineRun run;
+  try {
+    run = run_sine(xy, xz, so);
+  } catch (const std::invalid_argument& e) {
+    throw CommandExit(2, e.what());
+  }
+  std::cout << "magvec calibrate: method sine: turntable sine fitting (seed 001, ERRATA 001), "
+               "fixture "
+            << o.fixture << "\n"
+            << "  input XY sweep " << o.in_path << " (" << run.rows_xy << " rows), XZ sweep "
+            << o.sweep_xz << " (" << run.rows_xz << " rows); |B| " << fixed(run.field_nT, 1)
+            << " nT; noise " << fixed(so.noise_nT, 2) << " nT/axis\n";
+  print_counts(run.cal.counts, "");
+  if (run.solution.status == core::SineStatus::kOk) {
+    const core::SineParams<double>& p = run.solution.params;
+    const SineParamSigmas& s = run.sigma;
+    std::cout << "  sine-fit parameters (1-sigma from the fit residuals):\n"
+              << "    k              " << pm3(p.k, s.k, 6) << "\n"
+              << "    alpha deg      " << pm(p.alpha_rad * kDeg, s.alpha_rad * kDeg, 5) << "\n"
+              << "    beta deg       " << pm(p.beta_rad * kDeg, s.beta_rad * kDeg, 4) << "\n"
+              << "    gamma deg      " << pm(p.gamma_rad * kDeg, s.gamma_rad * kDeg, 4) << "\n"
+              << "    B0 nT          " << pm3(p.b0, s.b0, 2) << "\n"
+              << "    inclination    "
+              << pm(run.solution.inclination_rad * kDeg, s.inclination_rad * kDeg, 4) << " deg\n"
+              << "  sweep fit RMS per axis: XY " << vec3(run.solution.xy.rms, 2) << " nT, XZ "
+              << vec3(run.solution.xz.rms, 2) << " nT\n";
+  }
+  print_evaluation(run.eval, "the sine fit works in the fixture frame, not the INS frame");
+  return run.cal;
+}
+
+CalibrationFile run_ekf_method(const CalibrateOptions& o) {
+  io::CsvReaderOptions ropt;
+  if (std::isfinite(o.field_nT)) ropt.f_nT = o.field_nT;
+  {
+    io::CsvReader probe(o.in_path, ropt);
+    if (!probe.has_f() && !std::isfinite(o.field_nT)) {
+      throw CommandExit(2, o.in_path + ": no F_nT column: give the total field with --field-nT");
+    }
+  }
+  EkfRunOptions eo;
+  eo.paper_settings = o.paper_settings;
+  eo.float32 = o.float32;
+  eo.passes = o.passes;
+  eo.noise_nT = std::isfinite(o.noise_nT) ? o.noise_nT : 10.0;
+  if (std::isfinite(o.field_nT)) eo.field_nT = o.field_nT;
+  eo.trace_path = o.trace;
+  const EkfRun run = run_ekf(o.in_path, ropt, eo);
+  std::cout << "magvec calibrate: method ekf: 12-state scalar EKF (Ge 2017, ERRATA 002), "
+            << (o.float32 ? "float32" : "float64") << ", "
+            << (o.paper_settings ? "paper settings (printed x0/P0/Q/R; known to fail, ERRATA 002-3)"
+                                 : "default settings (start from a fit of the first samples)")
+            << ", " << o.passes << (o.passes == 1 ? " pass" : " passes") << "\n"
+            << "  input " << o.in_path << "; noise " << fixed(eo.noise_nT, 2) << " nT/axis\n";
+  print_counts(run.cal.counts, " (last pass)");
+  std::cout << "  filter: " << run.counters.updates << " updates, " << run.counters.gated
+            << " gated, " << run.counters.reinitialisations << " re-initialisations (last reason "
+            << run.last_reset << "), " << run.counters.init_outliers
+            << " initial-fit outliers (all passes)\n";
+  if (run.initialised) {
+    const core::Mat3<double> c_inv = run.model.w;
+    std::cout << "  Ge 2017 parameters (1-sigma):\n    C^-1           [";
+    for (int r = 0; r < 3; ++r) {
+      std::cout << (r > 0 ? ", " : "") << "[";
+      for (int c = 0; c < 3; ++c) {
+        std::cout << (c > 0 ? ", " : "") << pm(c_inv(r, c), run.sigma(3 * r + c), 6);
+      }
+      std::cout << "]";
+    }
+    std::cout
+        << "]\n    b nT           " << pm3(run.model.o, run.sigma.tail<3>(), 2) << "\n"
+        << "    G = C^-T C^-1  " << mat3(run.model.g(), 6) << "\n"
+        << "  note: a scalar (|H|) observation determines G and b only; C^-1 is known up to a "
+           "rotation (ERRATA 002-2): cal.json holds W = C^-1, Rm = identity, and its li "
+           "block's Rm_deg is that rotation, not a misalignment\n";
+    if (run.li_ok) print_li(run.li, &run.li_sigma, false);
+  }
+  if (!o.trace.empty())
+    std::cout << "  trace: " << run.trace_rows << " rows -> " << o.trace << "\n";
+  print_evaluation(run.eval, "the EKF determines W only up to a rotation");
+  return run.cal;
+}
+
+void run(const CalibrateOptions& o) {
+  if (o.method == "sine" && o.sweep_xz.empty())
+    throw CommandExit(2, "--method sine needs --sweep-xz (the XZ sweep; --in is the XY sweep)");
+  if (o.method == "sine" && o.fixture.empty())
+    throw CommandExit(2, "--method sine needs --fixture plane-normal|housing-y (ERRATA 001-4)");
+  if (o.method != "sine" && (!o.sweep_xz.empty() || !o.fixture.empty()))
+    throw CommandExit(2, "--sweep-xz and --fixture apply only to --method sine");
+  if (o.method != "ekf" && (o.paper_settings || o.float32 || o.passes != 1 || !o.trace.empty()))
+    throw CommandExit(2,
+                      "--paper-settings, --float32, --passes and --trace apply only to "
+                      "--method ekf");
+  CalibrationFile cal;
+  try {
+    if (o.method == "sine") {
+      cal = run_sine_method(o);
+    } else if (o.method == "ekf") {
+      cal = run_ekf_method(o);
+    } else {
+      const core::BatchMethod m = o.method == "li"          ? core::BatchMethod::kPlaneCompression
+                                  : o.method == "li-joint"  ? core::BatchMethod::kJoint
+                                  : o.method == "ellipsoid" ? core::BatchMethod::kEllipsoidOnly
+                                                            : core::BatchMethod::kOneStep;
+      cal = run_batch_method(o, m);
+    }
+  } catch (const io::CsvError& e) {
+    throw CommandExit(2, e.what());
+  } catch (const CapacityError& e) {
+    throw CommandExit(2, e.what());
+  }
+  cal.provenance.magvec_version = kVersion;
+  cal.provenance.created_utc = utc_now_iso8601();
+  print_verdict(cal.quality);
+  const bool ok = cal.quality.verdict == "ok";
+  if (ok || o.force_write) {
+    write_calibration_file(o.out_path, cal);
+    std::cout << "  wrote " << o.out_path
+              << (ok ? "\n" : " (verdict not ok, written because of --force-write)\n");
+  } else {
+    std::cout << "  nothing written to " << o.out_path
+              << " (verdict not ok; --force-write writes it anyway)\n";
+  }
+  if (!ok) throw CommandExit(3, "calibration refused: " + cal.quality.verdict);
+}
+
+}  // namespace
+
+void register_calibrate(CLI::App& app) {
+  auto opts = std::make_shared<CalibrateOptions>();
+  CLI::App* cmd = app.add_subcommand(
+      "calibrate",
+      "Calibrate a recording and write cal.json (exit 0 ok, 2 bad input, 3 refused). Batch "
+      "methods hold at most " +
+          std::to_string(kHostBatchCapacity) + " rows in memory; more is an error.");
+  cmd->add_option("--method", opts->method,
+                  "li-ml (one-step, default) | li (plane compression) | li-joint | ellipsoid "
+                  "(no attitude) | sine | ekf")
+      ->check(CLI::IsMember({"li-ml", "li", "li-joint", "ellipsoid", "sine", "ekf"}))
+      ->capture_default_str();
+  cmd->add_option("--in", opts->in_path, "Input CSV (for sine: the XY sweep)")->required();
+  cmd->add_option("--sweep-xz", opts->sweep_xz, "sine: the XZ-sweep CSV (theta_deg column)");
+  cmd->add_option("--fixture", opts->fixture, "sine: XZ-sweep fixture (ERRATA 001-4)")
+      ->check(CLI::IsMember({"plane-normal", "housing-y"}));
+  cmd->add_option("--out", opts->out_path, "Output cal.json (written atomically)")->required();
+  cmd->add_option("--field-nT", opts->field_nT,
+                  "Total field for rows without F_nT (sine: |B|, default the mean F_nT)")
+      ->check(CLI::PositiveNumber);
+  cmd->add_option("--noise-nT", opts->noise_nT,
+                  "Magnetometer noise per axis, 1-sigma (default 0.3 batch, 5 sine, 10 ekf)")
+      ->check(CLI::PositiveNumber);
+  cmd->add_option("--ins-noise-deg", opts->ins_noise_deg, "INS noise per angle, 1-sigma")
+      ->check(CLI::PositiveNumber)
+      ->capture_default_str();
+  cmd->add_option("--fix-heading-misalignment-deg", opts->fix_heading_deg,
+                  "Hold the misalignment about the vertical (alpha_m) at this value instead of "
+                  "refusing level-only data (ERRATA 000-4)");
+  cmd->add_flag("--paper-settings", opts->paper_settings,
+                "ekf: the printed x0/P0/Q/R of Ge 2017 (EkfConfig::paper(); they fail)");
+  cmd->add_option("--passes", opts->passes, "ekf: run the data this many times through the filter")
+      ->check(CLI::Range(1, 1000));
+  cmd->add_flag("--float32", opts->float32, "ekf: run the filter in float32 (as on the MCU)");
+  cmd->add_option(
+      "--trace", opts->trace,
+      "ekf: write the state, 1-sigma, NIS and intensity 1-sigma per sample to this CSV");
+  cmd->add_flag("--force-write", opts->force_write,
+                "Write cal.json even when the verdict is not ok (the verdict is recorded in it)");
+  cmd->callback([opts] { run(*opts); });
+}
+
+}  // namespace magvec::host::cli

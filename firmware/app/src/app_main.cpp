@@ -104,8 +104,7 @@ void serialise(const core::SensorModel<Scalar>& m, std::uint8_t (&blob)[kBlobByt
 }
 
 bool deserialise(const std::uint8_t* blob, std::size_t n, core::SensorModel<Scalar>* m) noexcept {
-  if (n != kBlobBytes || blob[0] != (kBlobVersion & 0xFF) || blob[1] != 0 ||
-      blob[2] != kBlobValues)
+  if (n != kBlobBytes || blob[0] != (kBlobVersion & 0xFF) || blob[1] != 0 || blob[2] != kBlobValues)
     return false;
   const std::uint8_t* p = blob + 4;
   for (int r = 0; r < 3; ++r)

@@ -35,14 +35,15 @@ const char* board_name() noexcept {
 }  // namespace magvec::app
 
 extern "C" void magvec_board_early_init(void) {
-  reg(kRcc + 0x30) |= 1u << 0;   // AHB1ENR.GPIOAEN
-  reg(kRcc + 0x40) |= 1u << 17;  // APB1ENR.USART2EN
-  (void)reg(kRcc + 0x40);        // read back: the clock is running before the first access
+  reg(kRcc + 0x30) |= 1u << 0;                     // AHB1ENR.GPIOAEN
+  reg(kRcc + 0x40) |= 1u << 17;                    // APB1ENR.USART2EN
+  const std::uint32_t enabled = reg(kRcc + 0x40);  // read back: clock running before use
+  (void)enabled;
   // PA2: alternate function 7 (USART2_TX).
-  reg(kGpioA + 0x00) = (reg(kGpioA + 0x00) & ~(3u << 4)) | (2u << 4);        // MODER2 = AF
-  reg(kGpioA + 0x20) = (reg(kGpioA + 0x20) & ~(0xFu << 8)) | (7u << 8);      // AFRL2 = AF7
-  reg(kUsart2 + 0x08) = (kHsiHz + kBaud / 2) / kBaud;                        // BRR (OVER8 = 0)
-  reg(kUsart2 + 0x0C) = (1u << 13) | (1u << 3);                              // CR1: UE, TE
+  reg(kGpioA + 0x00) = (reg(kGpioA + 0x00) & ~(3u << 4)) | (2u << 4);    // MODER2 = AF
+  reg(kGpioA + 0x20) = (reg(kGpioA + 0x20) & ~(0xFu << 8)) | (7u << 8);  // AFRL2 = AF7
+  reg(kUsart2 + 0x08) = (kHsiHz + kBaud / 2) / kBaud;                    // BRR (OVER8 = 0)
+  reg(kUsart2 + 0x0C) = (1u << 13) | (1u << 3);                          // CR1: UE, TE
 }
 
 int main() {

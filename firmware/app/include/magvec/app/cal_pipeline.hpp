@@ -20,8 +20,8 @@ template <typename Scalar>
 struct PipelineOutput {
   core::Compensated<Scalar> c{};
   core::Vec3<Scalar> h_n = core::Vec3<Scalar>::Zero();
-  bool valid{false};     // compensated values exist (finite raw sample)
-  bool has_nav{false};   // h_n computed (an attitude was available)
+  bool valid{false};    // compensated values exist (finite raw sample)
+  bool has_nav{false};  // h_n computed (an attitude was available)
 };
 
 template <typename Scalar>

@@ -82,7 +82,10 @@ def count(qemu, machine, elf, plugin, args, timeout):
                            capture_output=True, text=True, timeout=timeout)
         text = open(log.name).read()
     m = re.search(r"insns: (\d+)", text)
-    if p.returncode != 0 or m is None:
+    # Counting only (the mcu tests check the results): a run cut short by n=<k> may end before the
+    # calibration completes (exit code 5), a baseline run stores the identity model twice so its
+    # power-cut sweep sees no new blob (exit code 3); anything else is a failure.
+    if p.returncode not in (0, 3, 5) or m is None:
         print(p.stdout, p.stderr, text)
         raise SystemExit(f"qemu run {args} failed (rc {p.returncode})")
     return int(m.group(1))

@@ -14,7 +14,7 @@ if not os.path.exists(os.path.join(build, "build.ninja")) or not os.path.exists(
 p = subprocess.run(["cmake", "--build", build, "--target", "magvec_heap_probe"],
                    capture_output=True, text=True, timeout=600)
 out = p.stdout + p.stderr
-fired = "undefined reference to `__wrap_malloc'" in out and "__wrap__Znwj" in out
+fired = "undefined reference to `__wrap_malloc'" in out and "undefined reference to `__wrap__Znwj'" in out
 print(f"magvec_heap_probe link exit code {p.returncode}; no-heap check fired: {fired}")
 if p.returncode == 0 or not fired:
     print(out[-4000:])

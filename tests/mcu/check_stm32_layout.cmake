@@ -11,8 +11,9 @@ if(NOT headers MATCHES "\\.isr_vector +[0-9a-f]+ +08000000")
 endif()
 execute_process(COMMAND ${OBJDUMP} -s -j .isr_vector --start-address=0x08000000
                         --stop-address=0x08000008 ${ELF} OUTPUT_VARIABLE words)
-# Little endian words: SP = 0x200xxxxx (SRAM), PC = 0x080xxxxx | 1 (Thumb).
-if(NOT words MATCHES "8000000 [0-9a-f][0-9a-f][0-9a-f][0-9a-f]0020 [0-9a-f][0-9a-f][0-9a-f][0-9a-f]0008")
+# Little endian words: SP = 0x20xxxxxx (SRAM, top of the 128 KiB), PC = 0x08xxxxxx (flash).
+set(h "[0-9a-f]")
+if(NOT words MATCHES "8000000 ${h}${h}${h}${h}${h}${h}20 ${h}${h}${h}${h}${h}${h}08")
   message(FATAL_ERROR "unexpected initial SP/PC:\n${words}")
 endif()
 message("ok: STM32F4 vector table at 0x08000000, SP in SRAM, reset handler in flash")

@@ -727,7 +727,15 @@ class ScalarEkf {
     if (ok) {
       // P0 = info^-1: the filter has absorbed these samples and continues from here.
       const Eigen::LDLT<StateMat> ldlt(info);
-      const StateMat p0 = ldlt.solve(StateMat::Identity());
+      // Column by column: a matrix right-hand side would go through Eigen's blocked level-3
+      // triangular solver, whose (unused) heap fallback the firmware image must not link.
+      StateMat p0;
+      for (int c = 0; c < kN; ++c) {
+        StateVec e = StateVec::Zero();
+        e(c) = 1;
+        const StateVec col = ldlt.solve(e);
+        p0.col(c) = col;
+      }
       ok = ldlt.info() == Eigen::Success && ldlt.isPositive() && p0.allFinite() &&
            sigma_acceptable(p0) && c_inv().determinant() > 0 && ud_factorise(p0);
     }

@@ -1,0 +1,30 @@
+// Host "board": the same application as a hosted executable (the reference run the mcu tests
+// compare the emulated images with). Arguments are joined into the option string.
+#include <cstdio>
+#include <cstring>
+
+#include "magvec/app/board.hpp"
+
+namespace magvec::app {
+void board_write(const char* s, std::size_t n) noexcept {
+  std::fwrite(s, 1, n, stdout);
+}
+const char* board_name() noexcept {
+  return "host";
+}
+}  // namespace magvec::app
+
+int main(int argc, char** argv) {
+  char args[256] = {};
+  std::size_t used = 0;
+  for (int i = 1; i < argc; ++i) {
+    const std::size_t len = std::strlen(argv[i]);
+    if (used + len + 2 > sizeof args) break;
+    if (used > 0) args[used++] = ' ';
+    std::memcpy(args + used, argv[i], len);
+    used += len;
+  }
+  const int rc = magvec::app::app_main(args);
+  std::fflush(stdout);
+  return rc;
+}

@@ -1,0 +1,78 @@
+// qemu mps2-an386 (Cortex-M4F) / mps2-an500 (Cortex-M7) board: ARM semihosting done here (the
+// equivalent of newlib's initialise_monitor_handles + _write + _exit, ~30 lines) because
+// librdimon's syscalls pull in newlib's stdio initialisation, which references malloc, and the
+// image links no heap. Output: SYS_WRITE to the ":tt" console handle; arguments: SYS_GET_CMDLINE
+// (qemu: -semihosting-config ...,arg=<prog>,arg=<option>..., or -kernel/-append); exit code back
+// to qemu through SYS_EXIT_EXTENDED (main's return value becomes qemu's exit status).
+#include <cstdint>
+#include <cstring>
+
+#include "magvec/app/board.hpp"
+
+namespace {
+
+constexpr std::uint32_t kSysOpen = 0x01;
+constexpr std::uint32_t kSysWrite = 0x05;
+constexpr std::uint32_t kSysGetCmdline = 0x15;
+constexpr std::uint32_t kSysExitExtended = 0x20;
+constexpr std::uint32_t kAdpStoppedApplicationExit = 0x20026;
+constexpr std::uint32_t kOpenModeWrite = 4;  // "w"
+
+// One ARM semihosting call (Thumb: BKPT 0xAB, r0 = operation, r1 = parameter block).
+std::int32_t semihost(std::uint32_t op, const void* block) noexcept {
+  register std::uint32_t r0 asm("r0") = op;
+  register const void* r1 asm("r1") = block;
+  asm volatile("bkpt 0xab" : "+r"(r0) : "r"(r1) : "memory");
+  return static_cast<std::int32_t>(r0);
+}
+
+std::uint32_t word(const void* p) noexcept {
+  return static_cast<std::uint32_t>(reinterpret_cast<std::uintptr_t>(p));
+}
+
+std::int32_t g_console = -1;
+char g_cmdline[256];
+
+}  // namespace
+
+namespace magvec::app {
+void board_write(const char* s, std::size_t n) noexcept {
+  if (g_console < 0) return;
+  const std::uint32_t block[3] = {static_cast<std::uint32_t>(g_console), word(s),
+                                  static_cast<std::uint32_t>(n)};
+  (void)semihost(kSysWrite, block);  // returns the number of bytes NOT written
+}
+const char* board_name() noexcept {
+  return MAGVEC_BOARD_NAME;
+}
+}  // namespace magvec::app
+
+extern "C" void magvec_board_early_init(void) {
+  static const char kTt[] = ":tt";
+  const std::uint32_t block[3] = {word(kTt), kOpenModeWrite, sizeof kTt - 1};
+  g_console = semihost(kSysOpen, block);
+}
+
+extern "C" [[noreturn]] void _exit(int status) {
+  const std::uint32_t block[2] = {kAdpStoppedApplicationExit, static_cast<std::uint32_t>(status)};
+  for (;;)
+    (void)semihost(kSysExitExtended, block);
+}
+
+// Any fault or unexpected interrupt ends the emulation with a distinctive exit code.
+extern "C" void magvec_board_fault(std::uint32_t ipsr) {
+  (void)ipsr;
+  _exit(99);
+}
+
+int main() {
+  const std::uint32_t block[2] = {word(g_cmdline), sizeof g_cmdline - 1};
+  const char* args = "";
+  if (semihost(kSysGetCmdline, block) == 0) {
+    g_cmdline[sizeof g_cmdline - 1] = '\0';
+    args = g_cmdline;  // the first word is the program name
+    while (*args != '\0' && *args != ' ')
+      ++args;
+  }
+  return magvec::app::app_main(args);
+}

@@ -1,0 +1,415 @@
+// The firmware application (issue 8): a fixed, deterministic scenario run end to end on the MCU.
+//   Simulator (survey scenario, Li et al. 2023 truth, 50 Hz, fixed seed) -> simulated ADS131M04
+//   (SPI + DRDY) and SBG INS (CAN) speaking the real bytes -> the real codecs (Ads131Fluxgate,
+//   CanAttitudeSource) -> AttitudeBuffer -> CalPipeline (ScalarEkf + Compensator, Scalar =
+//   MAGVEC_APP_SCALAR) -> report lines.
+// Phases: calibration manoeuvre (the EKF learns, outputs use the active = identity model), then
+// the calibration is stored in the ParamStore over SimFlash, a power-cut sweep checks that every
+// interrupted store leaves the old or the new blob, the blob is reloaded from flash as after a
+// reboot and installed, and the survey line is compensated with it.
+// Report: "MV <key> ..." lines; values as IEEE-754 double bit patterns in hex (exact; see
+// line_writer.hpp), parsed by tests/mcu/compare_app_runs.py. Arguments (space separated):
+//   quiet      no per-record lines (instruction counting)
+//   baseline   skip the core work (attitude buffer, EKF, compensation): devices + codecs only
+//   n=<k>      stop after k magnetometer samples
+// Exit code 0 when every on-target check passed (power-cut sweep, reload, EKF initialised).
+#include <cstdint>
+#include <cstring>
+#include <limits>
+
+#include "magvec/app/board.hpp"
+#include "magvec/app/cal_pipeline.hpp"
+#include "magvec/app/line_writer.hpp"
+#include "magvec/core/attitude_buffer.hpp"
+#include "magvec/core/frames.hpp"
+#include "magvec/drivers/ads131_fluxgate.hpp"
+#include "magvec/drivers/param_store.hpp"
+#include "magvec/drivers/sbg_can.hpp"
+#include "magvec/drivers/sim/sim_devices.hpp"
+#include "magvec/drivers/sim/simulator.hpp"
+#include "magvec/drivers/sim_flash.hpp"
+
+#ifndef MAGVEC_APP_SCALAR
+#error "MAGVEC_APP_SCALAR (float or double) must be defined by the build"
+#endif
+
+namespace magvec::app {
+namespace {
+
+using Scalar = MAGVEC_APP_SCALAR;
+namespace sim = drivers::sim;
+
+constexpr std::uint64_t kSeed = 20170817;
+constexpr double kRateHz = 50.0;
+constexpr std::uint32_t kRecordEvery = 100;  // survey samples between two record lines
+constexpr std::uint32_t kInsLatencyCompUs = 500;
+
+sim::ScenarioConfig make_scenario() noexcept {
+  sim::ScenarioConfig c = sim::scenario_survey();
+  c.name = "survey50";
+  c.rate_hz = kRateHz;
+  // The calibration manoeuvre and one survey line.
+  c.num_samples = static_cast<std::uint32_t>((c.survey.manoeuvre_s + c.survey.line_s) * kRateHz);
+  return c;
+}
+
+// Fluxgate electronics 100 uT/V: +/-120 uT at ADC gain 1 (LSB 0.014 nT, well under the noise).
+sim::SimRigConfig make_rig_config() noexcept {
+  sim::SimRigConfig r;
+  r.adc.transfer.nT_per_volt = {1e5, 1e5, 1e5};
+  return r;
+}
+
+core::EkfConfig<Scalar> make_ekf_config(const sim::ScenarioConfig& s) noexcept {
+  core::EkfConfig<Scalar> c;
+  c.noise_sigma_nT = static_cast<Scalar>(s.mag_noise_nT);
+  return c;
+}
+
+// Calibration blob (ParamStore payload): version, count, then W (row-major), o, Rm (w, x, y, z)
+// as little-endian IEEE doubles, whatever Scalar is (float widens and narrows back exactly).
+constexpr std::uint16_t kBlobVersion = 1;
+constexpr std::size_t kBlobValues = 16;
+constexpr std::size_t kBlobBytes = 4 + 8 * kBlobValues;
+
+void put_f64(std::uint8_t* p, double v) noexcept {
+  std::uint64_t b = 0;
+  std::memcpy(&b, &v, 8);
+  for (int k = 0; k < 8; ++k)
+    p[k] = static_cast<std::uint8_t>(b >> (8 * k));
+}
+double get_f64(const std::uint8_t* p) noexcept {
+  std::uint64_t b = 0;
+  for (int k = 0; k < 8; ++k)
+    b |= static_cast<std::uint64_t>(p[k]) << (8 * k);
+  double v = 0;
+  std::memcpy(&v, &b, 8);
+  return v;
+}
+
+void serialise(const core::SensorModel<Scalar>& m, std::uint8_t (&blob)[kBlobBytes]) noexcept {
+  blob[0] = kBlobVersion & 0xFF;
+  blob[1] = kBlobVersion >> 8;
+  blob[2] = kBlobValues;
+  blob[3] = 0;
+  std::uint8_t* p = blob + 4;
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c, p += 8)
+      put_f64(p, static_cast<double>(m.w(r, c)));
+  for (int i = 0; i < 3; ++i, p += 8)
+    put_f64(p, static_cast<double>(m.o(i)));
+  const Scalar q[4] = {m.rm.w(), m.rm.x(), m.rm.y(), m.rm.z()};
+  for (int i = 0; i < 4; ++i, p += 8)
+    put_f64(p, static_cast<double>(q[i]));
+}
+
+bool deserialise(const std::uint8_t* blob, std::size_t n, core::SensorModel<Scalar>* m) noexcept {
+  if (n != kBlobBytes || blob[0] != (kBlobVersion & 0xFF) || blob[1] != 0 || blob[2] != kBlobValues)
+    return false;
+  const std::uint8_t* p = blob + 4;
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c, p += 8)
+      m->w(r, c) = static_cast<Scalar>(get_f64(p));
+  for (int i = 0; i < 3; ++i, p += 8)
+    m->o(i) = static_cast<Scalar>(get_f64(p));
+  Scalar q[4];
+  for (int i = 0; i < 4; ++i, p += 8)
+    q[i] = static_cast<Scalar>(get_f64(p));
+  m->rm = core::Quat<Scalar>(q[0], q[1], q[2], q[3]);
+  return m->w.allFinite() && m->o.allFinite();
+}
+
+struct Options {
+  bool records{true};
+  bool core{true};
+  std::uint32_t max_samples{std::numeric_limits<std::uint32_t>::max()};
+};
+
+Options parse_options(const char* a) noexcept {
+  Options o;
+  while (*a != '\0') {
+    while (*a == ' ')
+      ++a;
+    const char* w = a;
+    while (*a != '\0' && *a != ' ')
+      ++a;
+    const auto len = static_cast<std::size_t>(a - w);
+    if (len == 5 && std::strncmp(w, "quiet", 5) == 0) o.records = false;
+    if (len == 8 && std::strncmp(w, "baseline", 8) == 0) {
+      o.core = false;
+      o.records = false;
+    }
+    if (len > 2 && w[0] == 'n' && w[1] == '=') {
+      std::uint32_t v = 0;
+      for (const char* p = w + 2; p < a && *p >= '0' && *p <= '9'; ++p)
+        v = v * 10 + static_cast<std::uint32_t>(*p - '0');
+      o.max_samples = v;
+    }
+  }
+  return o;
+}
+
+// Everything the image owns, statically allocated (constructed by __libc_init_array).
+const sim::ScenarioConfig g_scenario = make_scenario();
+sim::Simulator g_sim(g_scenario, kSeed);
+sim::SimRig g_rig(g_sim, make_rig_config());
+drivers::Ads131Fluxgate g_adc(g_rig.adc(), g_rig.adc(), make_rig_config().adc.transfer);
+drivers::sbg::CanAttitudeSource g_ins(g_rig.ins());
+core::AttitudeBuffer<Scalar, 64> g_attitude{core::AttitudeBufferConfig{}};
+CalPipeline<Scalar> g_pipeline(make_ekf_config(g_scenario));
+constexpr std::size_t kSector = 1024;
+std::uint8_t g_flash_storage[4 * kSector];
+drivers::SimFlash g_flash(g_flash_storage, kSector);
+constexpr drivers::ParamStoreLayout kLayout{0, 2 * kSector};
+
+struct PowerCutResult {
+  std::uint32_t trials{0}, old_blob{0}, new_blob{0}, bad{0};
+};
+
+// Every interrupted store (program cut after k bytes, erase cut) must leave the old or the new
+// blob loadable, never a corrupt one.
+PowerCutResult power_cut_sweep(const std::uint8_t (&old_blob)[kBlobBytes],
+                               const std::uint8_t (&new_blob)[kBlobBytes]) noexcept {
+  PowerCutResult r;
+  const std::size_t program_total = drivers::FlashParamStore::kHeaderSize + kBlobBytes;
+  for (std::size_t trial = 0;; ++trial) {
+    const bool erase_cut = trial < 3;
+    const std::size_t k = erase_cut ? 0 : (trial - 3) * 5;
+    if (!erase_cut && k > program_total + 12) break;
+    g_flash.restore_power();
+    std::memset(g_flash_storage, 0xFF, sizeof g_flash_storage);
+    drivers::FlashParamStore store(g_flash, kLayout);
+    if (store.store(old_blob) != hal::Status::kOk) {
+      ++r.bad;
+      continue;
+    }
+    if (erase_cut) {
+      // During the first erase, half-way through it, and near the end of the second sector.
+      static constexpr std::size_t kEraseOk[3] = {0, 0, 1};
+      static constexpr std::size_t kErased[3] = {0, kSector / 2, kSector - 8};
+      g_flash.cut_during_erase(kEraseOk[trial], kErased[trial]);
+    } else {
+      g_flash.cut_after_program_bytes(k);
+    }
+    (void)store.store(new_blob);
+    g_flash.restore_power();  // reboot
+    drivers::FlashParamStore reloaded(g_flash, kLayout);
+    std::uint8_t out[kBlobBytes + 16];
+    std::size_t n = 0;
+    std::uint32_t seq = 0;
+    ++r.trials;
+    if (reloaded.load(out, n, seq) != hal::Status::kOk || n != kBlobBytes) {
+      ++r.bad;
+    } else if (std::memcmp(out, old_blob, kBlobBytes) == 0) {
+      ++r.old_blob;
+    } else if (std::memcmp(out, new_blob, kBlobBytes) == 0) {
+      ++r.new_blob;
+    } else {
+      ++r.bad;
+    }
+  }
+  g_flash.restore_power();
+  return r;
+}
+
+struct Stats {
+  std::uint32_t samples{0}, cal_samples{0}, survey_samples{0}, read_errors{0}, not_fresh{0},
+      device_errors{0}, no_attitude{0}, att_samples{0}, att_rejected{0};
+  double sum_sq_f_cal{0};     // |h_s| - F over the manoeuvre (active model: identity)
+  double sum_sq_f_survey{0};  // |h_s| - F over the survey line (stored calibration)
+  double max_abs_f_survey{0};
+  double sum_sq_hn_survey{0};  // |h_n - h_n true|^2 over the survey line
+  std::uint32_t hn_survey{0};
+};
+
+void report_vec(LineWriter& w, const char* key, const Scalar* v, int n) noexcept {
+  w.str("MV ").str(key);
+  for (int i = 0; i < n; ++i)
+    w.sp().hex(static_cast<double>(v[i]));
+  w.end();
+}
+
+// G = W^T W (upper triangle 00 01 02 11 12 22) and its 1-sigma from the EKF covariance of W
+// (first-order propagation: dG = dW^T W + W^T dW).
+void report_g(LineWriter& w, const core::ScalarEkf<Scalar>& ekf) noexcept {
+  const core::Mat3<Scalar> wm = ekf.c_inv();
+  const core::Mat3<Scalar> g = wm.transpose() * wm;
+  const core::Mat<Scalar, 12, 12> p = ekf.covariance();
+  static constexpr int kI[6] = {0, 0, 0, 1, 1, 2};
+  static constexpr int kJ[6] = {0, 1, 2, 1, 2, 2};
+  Scalar gv[6];
+  Scalar gs[6];
+  for (int e = 0; e < 6; ++e) {
+    const int i = kI[e], j = kJ[e];
+    gv[e] = g(i, j);
+    // G_ij = sum_r W_ri W_rj: dG_ij/dW_rc = [c == i] W_rj + [c == j] W_ri.
+    core::Vec<Scalar, 9> jac = core::Vec<Scalar, 9>::Zero();
+    for (int r = 0; r < 3; ++r) {
+      jac(core::ekf_w_index(r, i)) += wm(r, j);
+      jac(core::ekf_w_index(r, j)) += wm(r, i);
+    }
+    const Scalar var = jac.dot(p.template topLeftCorner<9, 9>() * jac);
+    gs[e] = std::sqrt(var > 0 ? var : Scalar(0));
+  }
+  report_vec(w, "g", gv, 6);
+  report_vec(w, "g_sigma", gs, 6);
+}
+
+}  // namespace
+
+int app_main(const char* args) noexcept {
+  const Options opt = parse_options(args);
+  LineWriter w;
+  w.str("MV begin scenario=").str(g_scenario.name).str(" seed=").u(kSeed);
+  w.str(" scalar=").str(sizeof(Scalar) == 4 ? "float" : "double").str(" board=").str(board_name());
+  w.str(" core=").u(opt.core ? 1 : 0).end();
+  w.str("MV sizeof pipeline=").u(sizeof(CalPipeline<Scalar>)).str(" ekf=");
+  w.u(sizeof(core::ScalarEkf<Scalar>)).str(" attitude_buffer=").u(sizeof(g_attitude));
+  w.str(" rig=").u(sizeof(g_rig)).end();
+
+  int rc = 0;
+  if (g_adc.init() != hal::Status::kOk) {
+    w.str("MV error adc_init").end();
+    return 2;
+  }
+  const double manoeuvre_s = g_scenario.survey.manoeuvre_s;
+  Stats st;
+  bool installed = false;
+  std::uint8_t blob_old[kBlobBytes];
+  serialise(g_pipeline.active(), blob_old);  // what the flash held before: the identity model
+
+  while (st.samples < opt.max_samples && g_rig.step()) {
+    // INS: every valid epoch into the attitude buffer (validity time = CAN receive - latency).
+    hal::AttitudeSample a;
+    for (int guard = 0; guard < 256 && g_ins.read(a, 0) == hal::Status::kOk; ++guard) {
+      ++st.att_samples;
+      if (!opt.core) continue;
+      if ((a.flags & hal::kAttAttitudeValid) == 0) continue;
+      const std::uint64_t t = a.t_us > kInsLatencyCompUs ? a.t_us - kInsLatencyCompUs : 0;
+      const core::Quat<Scalar> q(static_cast<Scalar>(a.q_nb[0]), static_cast<Scalar>(a.q_nb[1]),
+                                 static_cast<Scalar>(a.q_nb[2]), static_cast<Scalar>(a.q_nb[3]));
+      const core::AttitudeInsert ins = g_attitude.insert(t, q);
+      if (ins == core::AttitudeInsert::kDuplicate || ins == core::AttitudeInsert::kTooOld ||
+          ins == core::AttitudeInsert::kInvalid)
+        ++st.att_rejected;
+    }
+    const sim::SimSample& truth = g_rig.last();
+    const bool calibrating = truth.t_s < manoeuvre_s;
+    if (!calibrating && !installed) {
+      // End of the manoeuvre: store, power-cut sweep, reload (as after a reboot), install.
+      installed = true;
+      std::uint8_t blob_new[kBlobBytes];
+      serialise(g_pipeline.ekf().model(), blob_new);
+      const PowerCutResult pc = power_cut_sweep(blob_old, blob_new);
+      w.str("MV pcut trials=").u(pc.trials).str(" old=").u(pc.old_blob).str(" new=");
+      w.u(pc.new_blob).str(" bad=").u(pc.bad).end();
+      if (pc.bad != 0 || pc.old_blob == 0 || pc.new_blob == 0) rc = 3;
+      std::memset(g_flash_storage, 0xFF, sizeof g_flash_storage);
+      drivers::FlashParamStore store(g_flash, kLayout);
+      const bool stored =
+          store.store(blob_old) == hal::Status::kOk && store.store(blob_new) == hal::Status::kOk;
+      drivers::FlashParamStore after_reboot(g_flash, kLayout);
+      std::uint8_t loaded[kBlobBytes + 16];
+      std::size_t n = 0;
+      std::uint32_t seq = 0;
+      core::SensorModel<Scalar> model;
+      const bool ok = stored && after_reboot.load(loaded, n, seq) == hal::Status::kOk &&
+                      deserialise(loaded, n, &model) && seq == 2;
+      w.str("MV reload ok=").u(ok ? 1 : 0).str(" seq=").u(seq).str(" bytes=").u(n).end();
+      if (!ok) {
+        rc = 4;
+      } else {
+        g_pipeline.install(model);
+      }
+    }
+    for (int guard = 0; guard < 8; ++guard) {
+      hal::MagnetometerSample s;
+      const hal::Status rs = g_adc.read(s, 0);
+      if (rs == hal::Status::kTimeout || rs == hal::Status::kNoData) break;
+      if (rs != hal::Status::kOk) {
+        ++st.read_errors;
+        continue;
+      }
+      ++st.samples;
+      if ((s.flags & hal::kMagNotFresh) != 0) {
+        ++st.not_fresh;
+        continue;
+      }
+      if ((s.flags & hal::kMagInvalidMask) != 0) {
+        ++st.device_errors;
+        continue;
+      }
+      if (!opt.core) continue;
+      const core::Vec3<Scalar> m(static_cast<Scalar>(s.m_nT[0]), static_cast<Scalar>(s.m_nT[1]),
+                                 static_cast<Scalar>(s.m_nT[2]));
+      const core::AttitudeQuery<Scalar> q = g_attitude.at(s.t_us);
+      core::Mat3<Scalar> r_bn;
+      const bool usable = core::attitude_usable(q.status);
+      if (usable) {
+        r_bn = core::r_bn_from_quat(q.q_nb);
+      } else {
+        ++st.no_attitude;
+      }
+      const PipelineOutput<Scalar> out = g_pipeline.step(m, static_cast<Scalar>(truth.f_nT),
+                                                         usable ? &r_bn : nullptr, calibrating);
+      if (!out.valid) continue;
+      const double res = static_cast<double>(out.c.intensity) - truth.f_nT;
+      if (calibrating) {
+        ++st.cal_samples;
+        st.sum_sq_f_cal += res * res;
+        continue;
+      }
+      ++st.survey_samples;
+      st.sum_sq_f_survey += res * res;
+      st.max_abs_f_survey = std::fmax(st.max_abs_f_survey, std::fabs(res));
+      if (out.has_nav) {
+        ++st.hn_survey;
+        st.sum_sq_hn_survey += (out.h_n.template cast<double>() - truth.h_n_true_nT).squaredNorm();
+      }
+      if (opt.records && st.survey_samples % kRecordEvery == 1) {
+        w.str("MV rec ").u(st.samples).sp().u(s.t_us);
+        for (int i = 0; i < 3; ++i)
+          w.sp().hex(static_cast<double>(out.c.h_s(i)));
+        w.sp().hex(static_cast<double>(out.c.intensity));
+        for (int i = 0; i < 3; ++i)
+          w.sp().hex(static_cast<double>(out.h_n(i)));
+        w.end();
+      }
+    }
+  }
+
+  const core::ScalarEkf<Scalar>& ekf = g_pipeline.ekf();
+  const core::EkfCounters& ec = ekf.counters();
+  w.str("MV ekf initialised=").u(ekf.initialised() ? 1 : 0).str(" updates=").u(ec.updates);
+  w.str(" gated=").u(ec.gated).str(" reinit=").u(ec.reinitialisations);
+  w.str(" init_failures=").u(ec.init_failures).end();
+  w.str("MV counts samples=").u(st.samples).str(" cal=").u(st.cal_samples);
+  w.str(" survey=").u(st.survey_samples).str(" read_errors=").u(st.read_errors);
+  w.str(" not_fresh=").u(st.not_fresh).str(" device_errors=").u(st.device_errors);
+  w.str(" no_attitude=").u(st.no_attitude).str(" att=").u(st.att_samples);
+  w.str(" att_rejected=").u(st.att_rejected).end();
+  if (opt.core) {
+    const core::SensorModel<Scalar> model = ekf.model();
+    report_vec(w, "w", model.w.data(), 9);  // column-major, as Eigen stores it
+    report_vec(w, "b", model.o.data(), 3);
+    const core::Vec<Scalar, 12> sigma = ekf.sigma();
+    report_vec(w, "sigma", sigma.data(), 12);
+    report_g(w, ekf);
+    const double rmse_survey =
+        st.survey_samples > 0 ? std::sqrt(st.sum_sq_f_survey / st.survey_samples) : 0.0;
+    const double rmse_cal = st.cal_samples > 0 ? std::sqrt(st.sum_sq_f_cal / st.cal_samples) : 0.0;
+    const double rmse_hn = st.hn_survey > 0 ? std::sqrt(st.sum_sq_hn_survey / st.hn_survey) : 0.0;
+    w.str("MV stats ").hex(rmse_survey).sp().hex(st.max_abs_f_survey).sp().hex(rmse_hn);
+    w.sp().hex(rmse_cal).end();
+    w.str("MV summary rmse_F_nT=").fixed(rmse_survey, 4).str(" max_abs_F_nT=");
+    w.fixed(st.max_abs_f_survey, 4).str(" rmse_hn_nT=").fixed(rmse_hn, 4);
+    w.str(" rmse_F_uncalibrated_nT=").fixed(rmse_cal, 1).str(" b_nT=");
+    w.fixed(static_cast<double>(model.o(0)), 3).str(",").fixed(static_cast<double>(model.o(1)), 3);
+    w.str(",").fixed(static_cast<double>(model.o(2)), 3).end();
+    if (!ekf.initialised() || st.survey_samples == 0) rc = rc != 0 ? rc : 5;
+  }
+  w.str("MV end rc=").u(static_cast<std::uint64_t>(rc)).end();
+  return rc;
+}
+
+}  // namespace magvec::app

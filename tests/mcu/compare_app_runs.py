@@ -1,0 +1,147 @@
+#!/usr/bin/env python3
+"""Runs the firmware image under qemu-system-arm and compares its report with the host twin.
+
+Modes (issue 8):
+  double  M7 image (Scalar = double) vs magvec_app_host_double (EKF counters identical);
+  float   M4F image (Scalar = float) vs magvec_app_host_double.
+Both: the on-target checks (power-cut sweep, reload from flash) passed, sample/attitude counts
+identical, intensity RMSE within 1.1x, every G and b element within FRACTION (3) of its 1-sigma.
+NOT bit-close (see the comment in main): the simulator's libm differs between newlib and glibc.
+Exit 77 (ctest SKIP_RETURN_CODE) when the image or qemu is missing: build the m4f/m7 presets.
+"""
+import argparse
+import math
+import os
+import shutil
+import struct
+import subprocess
+import sys
+
+SKIP = 77
+
+
+def skip(msg):
+    print(f"SKIP: {msg}")
+    sys.exit(SKIP)
+
+
+def value(tok):
+    return struct.unpack(">d", bytes.fromhex(tok))[0]
+
+
+def parse(text):
+    out = {"rec": [], "lines": {}}
+    for line in text.splitlines():
+        if not line.startswith("MV "):
+            continue
+        parts = line.split()
+        key = parts[1]
+        if key == "rec":
+            out["rec"].append((int(parts[2]), int(parts[3]), [value(t) for t in parts[4:]]))
+        elif key in ("w", "b", "sigma", "g", "g_sigma", "stats"):
+            out[key] = [value(t) for t in parts[2:]]
+        else:
+            out["lines"][key] = " ".join(parts[2:])
+    return out
+
+
+def run(cmd, timeout):
+    p = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, timeout=timeout,
+                       text=True)
+    return p.returncode, p.stdout, p.stderr
+
+
+class Checker:
+    def __init__(self):
+        self.failures = 0
+
+    def check(self, ok, what):
+        print(("ok    " if ok else "FAIL  ") + what)
+        if not ok:
+            self.failures += 1
+
+
+def rel_close(a, b, rel, floor):
+    return abs(a - b) <= rel * max(abs(a), abs(b), floor)
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--machine", required=True)
+    ap.add_argument("--elf", required=True)
+    ap.add_argument("--host", required=True, help="host twin with the same Scalar as the image")
+    ap.add_argument("--host-double", help="float mode: the double host twin")
+    ap.add_argument("--mode", choices=["double", "float"], required=True)
+    ap.add_argument("--fraction", type=float, default=3.0,
+                    help="float mode: allowed |float - double| in units of the 1-sigma")
+    ap.add_argument("--timeout", type=float, default=120)
+    a = ap.parse_args()
+
+    if not os.path.exists(a.elf):
+        skip(f"{a.elf} not built (cmake --preset m4f/m7 && cmake --build --preset m4f/m7, "
+             "or toolchain/test)")
+    qemu = shutil.which("qemu-system-arm")
+    if qemu is None:
+        skip("qemu-system-arm not installed (toolchain/setup)")
+
+    c = Checker()
+    cmd = [qemu, "-M", a.machine, "-nographic", "-monitor", "none", "-serial", "none",
+           "-semihosting-config", "enable=on,target=native", "-kernel", a.elf]
+    rc, target_out, err = run(cmd, a.timeout)
+    c.check(rc == 0, f"qemu {a.machine} exit code {rc} (0 = on-target checks passed) {err.strip()}")
+    t = parse(target_out)
+    c.check(t["lines"].get("end") == "rc=0", f"target report complete: end {t['lines'].get('end')}")
+    print("target: " + t["lines"].get("summary", "(no summary)"))
+    print("target: pcut " + t["lines"].get("pcut", "?") + " | reload " +
+          t["lines"].get("reload", "?"))
+
+    rc, host_out, err = run([a.host], a.timeout)
+    c.check(rc == 0, f"host twin {os.path.basename(a.host)} exit code {rc}")
+    h = parse(host_out)
+    print("host:   " + h["lines"].get("summary", "(no summary)"))
+
+    for key in ("pcut", "reload", "counts"):
+        c.check(t["lines"].get(key) == h["lines"].get(key),
+                f"{key} identical: '{t['lines'].get(key)}'")
+    c.check("initialised=1" in t["lines"].get("ekf", ""), "EKF initialised on target")
+
+    if a.mode == "double":
+        c.check(t["lines"].get("ekf") == h["lines"].get("ekf"), "EKF counters identical")
+        ref = h
+    else:
+        rc, d_out, err = run([a.host_double], a.timeout)
+        c.check(rc == 0, f"host double twin exit code {rc}")
+        ref = parse(d_out)
+        print("double: " + ref["lines"].get("summary", "(no summary)"))
+    # Not bit-close end to end (measured): the simulator's libm (newlib fdlibm on target, glibc on
+    # the host) differs in last bits, which flips occasional ADC code roundings and with them the
+    # EKF's initial-fit sample selection (a step threshold): the two runs then estimate from
+    # slightly different data. So the estimates are compared statistically, in units of their
+    # 1-sigma (FRACTION, default 3), and the intensity RMSE within 1.1x. Reported: the largest
+    # relative difference and the largest difference in sigma.
+    worst_rel = 0.0
+    for key in ("w", "b", "g"):
+        for x, y in zip(t[key], ref[key]):
+            worst_rel = max(worst_rel, abs(x - y) / max(abs(x), abs(y), 1e-300))
+    print(f"largest relative difference of W, b, G vs the host: {worst_rel:.3g}")
+    rmse_t, rmse_r = t["stats"][0], ref["stats"][0]
+    c.check(rmse_t <= 1.1 * rmse_r and rmse_r <= 1.1 * rmse_t,
+            f"intensity RMSE image {rmse_t:.4f} nT vs host double {rmse_r:.4f} nT (within 1.1x)")
+    worst = 0.0
+    for key, skey, off in (("g", "g_sigma", 0), ("b", "sigma", 9)):
+        for i in range(len(ref[key])):
+            z = abs(t[key][i] - ref[key][i]) / ref[skey][off + i]
+            worst = max(worst, z)
+            c.check(z <= a.fraction, f"{key}[{i}] image {t[key][i]:.9g} host double "
+                    f"{ref[key][i]:.9g}: {z:.3f} sigma (<= {a.fraction})")
+    print(f"largest |image - host double| / sigma: {worst:.3f}")
+    c.check(len(t["rec"]) == len(h["rec"]) and len(t["rec"]) > 0 and
+            all(ti == hi and tt == ht for (ti, tt, _), (hi, ht, _) in zip(t["rec"], h["rec"])),
+            f"{len(t['rec'])} record lines at the same samples/times")
+
+    print(f"{c.failures} failure(s)")
+    return 1 if c.failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

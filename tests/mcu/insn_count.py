@@ -1,0 +1,130 @@
+#!/usr/bin/env python3
+"""Instructions per sample of the firmware image, counted by qemu's TCG `insn` plugin.
+
+The plugin is not shipped by Debian: it is built from tests/plugin/insn.c of Debian's qemu source
+package (apt-get source with a private APT_CONFIG holding a deb-src entry; cached in --cache),
+needs libglib2.0-dev. Counts are deterministic (inline counting).
+Method: the image runs `quiet n=<k>` (full pipeline) and `baseline n=<k>` (simulated devices and
+codecs only) for several k; D(k) = full - baseline is the core work (attitude buffer, EKF,
+compensation). Per-sample figures are differences of D between two k in the same phase, so
+one-off work (the EKF's initial fit, start-up) cancels:
+  calibrating: EKF update + compensation + attitude (k = 2500 -> 3000, after the initial fit)
+  survey:      compensation + attitude only (k = 4000 -> 6000)
+  initial fit: D(2000) - D(1000) - the per-sample work of those 1000 samples (approximate split:
+               collecting samples before the fit, filter samples after it).
+Exit 77 when the plugin cannot be built (no network, no glib headers) or the image is missing.
+"""
+import argparse
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+
+SKIP = 77
+QEMU_SRC_VERSION = None  # the installed qemu's source version (dpkg), e.g. 1:7.2+dfsg-7+deb12u18
+
+
+def skip(msg):
+    print(f"SKIP: {msg}")
+    sys.exit(SKIP)
+
+
+def build_plugin(cache):
+    so = os.path.join(cache, "libinsn.so")
+    if os.path.exists(so):
+        return so
+    os.makedirs(cache, exist_ok=True)
+    ver = subprocess.run(["dpkg-query", "-W", "-f=${source:Version}", "qemu-system-arm"],
+                         capture_output=True, text=True).stdout.strip()
+    apt = os.path.join(cache, "apt")
+    for d in ("etc/sources.list.d", "state/lists/partial", "cache/archives/partial"):
+        os.makedirs(os.path.join(apt, d), exist_ok=True)
+    with open(os.path.join(apt, "etc/sources.list"), "w") as f:
+        f.write("deb-src http://deb.debian.org/debian bookworm main\n"
+                "deb-src http://deb.debian.org/debian bookworm-updates main\n"
+                "deb-src http://deb.debian.org/debian-security bookworm-security main\n")
+    conf = os.path.join(apt, "apt.conf")
+    with open(conf, "w") as f:
+        f.write(f'Dir::Etc::SourceList "{apt}/etc/sources.list";\n'
+                f'Dir::Etc::SourceParts "{apt}/etc/sources.list.d";\n'
+                f'Dir::State "{apt}/state";\nDir::State::status "/var/lib/dpkg/status";\n'
+                f'Dir::Cache "{apt}/cache";\nDebug::NoLocking "true";\n')
+    env = dict(os.environ, APT_CONFIG=conf)
+    src = os.path.join(cache, "src")
+    os.makedirs(src, exist_ok=True)
+    try:
+        subprocess.run(["apt-get", "update", "-qq"], env=env, check=True, timeout=600)
+        subprocess.run(["apt-get", "source", "--download-only", f"qemu={ver}" if ver else "qemu"],
+                       env=env, cwd=src, check=True, timeout=900, capture_output=True)
+        orig = [f for f in os.listdir(src) if f.endswith(".orig.tar.xz")][0]
+        top = subprocess.run(["tar", "tf", os.path.join(src, orig)], capture_output=True,
+                             text=True).stdout.split("/", 1)[0]
+        subprocess.run(["tar", "xf", orig, f"{top}/tests/plugin/insn.c",
+                        f"{top}/include/qemu/qemu-plugin.h"], cwd=src, check=True)
+        glib = subprocess.run(["pkg-config", "--cflags", "glib-2.0"], capture_output=True,
+                              text=True, check=True).stdout.split()
+        subprocess.run(["gcc", "-O2", "-shared", "-fPIC", "-I", f"{src}/{top}/include/qemu", *glib,
+                        f"{src}/{top}/tests/plugin/insn.c", "-o", so], check=True)
+    except (subprocess.SubprocessError, IndexError, OSError) as e:
+        skip(f"could not build the qemu insn plugin: {e}")
+    return so
+
+
+def count(qemu, machine, elf, plugin, args, timeout):
+    with tempfile.NamedTemporaryFile(suffix=".log") as log:
+        sh = ",".join(["enable=on", "target=native", "arg=magvec_app"] +
+                      [f"arg={x}" for x in args])
+        p = subprocess.run([qemu, "-M", machine, "-nographic", "-monitor", "none", "-serial",
+                            "none", "-semihosting-config", sh, "-kernel", elf,
+                            "-plugin", f"{plugin},inline=on", "-d", "plugin", "-D", log.name],
+                           capture_output=True, text=True, timeout=timeout)
+        text = open(log.name).read()
+    m = re.search(r"insns: (\d+)", text)
+    # Counting only (the mcu tests check the results): a run cut short by n=<k> may end before the
+    # calibration completes (exit code 5), a baseline run stores the identity model twice so its
+    # power-cut sweep sees no new blob (exit code 3); anything else is a failure.
+    if p.returncode not in (0, 3, 5) or m is None:
+        print(p.stdout, p.stderr, text)
+        raise SystemExit(f"qemu run {args} failed (rc {p.returncode})")
+    return int(m.group(1))
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--machine", default="mps2-an386")
+    ap.add_argument("--elf", required=True)
+    ap.add_argument("--cache", required=True)
+    ap.add_argument("--budget", type=float, default=0, help="fail if calibrating/sample > this")
+    ap.add_argument("--timeout", type=float, default=300)
+    a = ap.parse_args()
+    if not os.path.exists(a.elf):
+        skip(f"{a.elf} not built")
+    qemu = shutil.which("qemu-system-arm")
+    if qemu is None:
+        skip("qemu-system-arm not installed")
+    plugin = build_plugin(a.cache)
+
+    ks = (1000, 2000, 2500, 3000, 4000, 6000)
+    d = {}
+    for k in ks:
+        full = count(qemu, a.machine, a.elf, plugin, ["quiet", f"n={k}"], a.timeout)
+        base = count(qemu, a.machine, a.elf, plugin, ["baseline", f"n={k}"], a.timeout)
+        d[k] = full - base
+        print(f"n={k}: full {full} baseline {base} core {d[k]}")
+    cal = (d[3000] - d[2500]) / 500
+    survey = (d[6000] - d[4000]) / 2000
+    collecting = d[1000] / 1000  # before the initial fit: attitude + compensation + buffering
+    print(f"per sample, calibrating (EKF update + compensation + attitude): {cal:.0f} instructions")
+    print(f"per sample, survey (compensation + attitude):                  {survey:.0f} instructions")
+    print(f"per sample, collecting for the initial fit:                     {collecting:.0f} instructions")
+    print(f"core work of samples 1000..2000 (includes the one-off initial fit): {d[2000] - d[1000]}")
+    if a.budget > 0 and cal > a.budget:
+        print(f"FAIL: {cal:.0f} > budget {a.budget:.0f} instructions per sample")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -266,6 +266,7 @@ void run(const DemoOptions& o) {
   const auto& ins = session->rig().ins().injected();
   std::cout << "\nHealth (counted / injected): ADC CRC errors " << mc.crc_errors << " / "
             << adc.crc_corrupted << ", dropouts " << h.dropouts << " / " << adc.not_fresh
+            << " (a dropout frame can itself be lost to a CRC error)"
             << ", INS malformed frames " << ac.malformed << " / " << ins.corrupted_frames
             << ", records without attitude " << h.no_attitude << ", INS gaps " << c.att_gaps
             << ", missing samples " << c.mag_missing << "\n"

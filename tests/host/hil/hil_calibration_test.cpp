@@ -104,7 +104,7 @@ TEST(HilCalibration, TenMinuteSurveyCalibratesInTheLoopToTheNoiseFloors) {
   rc.adc.faults.crc_error_probability = 0.02;
   rc.adc.faults.saturation_probability = 0.005;
   rc.ins.faults.corrupt_probability = 0.02;
-  rc.ins.faults.gap_start_s = 30.0;  // during the manoeuvre: the calibrator must cope
+  rc.ins.faults.gap_start_s = 15.0;  // while the calibrator collects: it must cope
   rc.ins.faults.gap_length_s = 1.0;
   rc.ins.faults.invalid_start_s = 200.0;  // on a survey line
   rc.ins.faults.invalid_length_s = 2.0;

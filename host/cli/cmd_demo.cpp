@@ -1,142 +1,288 @@
-// `magvec demo` (temporary): simulates a survey (drivers/sim scenario_survey: Li et al. 2023 sensor
-// and field, calibration manoeuvre + survey lines), writes DIR/survey.csv, reads it back through
-// the CSV reader and compensates it with the TRUE simulation parameters (DESIGN.md compensation h_s
-// = W (m - o), h_n = R_bn^T Rm^T h_s). A later issue replaces the truth with the in-loop
-// calibration. Prints intensity and ENU-component statistics before and after.
+// `magvec demo`: the real pipeline end to end, in simulated time (DESIGN.md "Host-in-the-loop
+// simulation", issue 5). A survey (drivers/sim scenario_survey: Li et al. 2023 sensor and field,
+// 60 s calibration manoeuvre, then survey lines) is played through simulated devices speaking the
+// real bytes (ADS131M04 on SPI + DRDY, SBG INS on CAN, with a few injected faults) -> the real
+// codecs -> AttitudeBuffer -> SensorLoop with the Li batch calibrator (core::BatchLiCalibrator:
+// collects during the manoeuvre, solves the one-step fit, validates on held-out samples, applies)
+// -> DIR/records.csv. The calibration is written to DIR/cal.json. The before/after table is over
+// the survey lines after the calibration was applied: "before" is the raw reading (|m|, and m
+// rotated by R_bn^T), "after" the loop's output, "floor" the TRUE parameters applied to the same
+// records and attitudes (what a perfect calibration would give: the noise).
 #include <CLI/CLI.hpp>
 #include <cmath>
-#include <cstdio>
 #include <filesystem>
 #include <iostream>
 #include <memory>
 #include <string>
 
+#include "calibration/calibration_file.hpp"
 #include "commands.hpp"
+#include "magvec/core/batch_li_calibrator.hpp"
 #include "magvec/core/compensator.hpp"
-#include "magvec/host/io/csv.hpp"
-#include "sim_csv.hpp"
+#include "magvec/host/hil/csv_record_sink.hpp"
+#include "magvec/host/hil/hil_session.hpp"
+#include "magvec/version.hpp"
 #include "stats.hpp"
 
 namespace magvec::host::cli {
 namespace {
+
+using LiCal = core::BatchLiCalibrator<double, 512>;
+using Session = hil::HilSession<LiCal>;
 
 struct DemoOptions {
   std::string out_dir;
   std::uint64_t seed = 1;
   double noise_nT = 0.3;
   double ins_noise_deg = 0.015;
-  double dropout_rate = 0.001;
+  double dropout_rate = 0.002;
+  double crc_rate = 0.01;
+  double ins_corrupt_rate = 0.01;
 };
+
+// Forwards every record to the CSV sink and scores the calibrated survey-line records against the
+// simulation truth (the session's current simulated sample and the attitude the loop used).
+class ScoringSink final : public hal::RecordSink {
+ public:
+  ScoringSink(hil::CsvRecordSink& csv, const drivers::sim::ScenarioConfig& sc)
+      : csv_(csv), truth_(sc.truth), survey_(sc.survey) {}
+  void attach(Session* s) { session_ = s; }
+
+  hal::Status emit(const hal::OutputRecord& r) noexcept override {
+    const hal::Status st = csv_.emit(r);
+    const drivers::sim::SimSample& s = session_->rig().last();
+    if (r.cal_id == 0 || session_->rig().host_us(s.t_s) != r.t_us || !on_line(s.t_s) ||
+        (r.flags & (core::kOutDropout | core::kOutDeviceError | core::kOutNoAttitude)) != 0) {
+      return st;
+    }
+    const core::AttitudeQuery<double> q = session_->buffer().at(r.t_us);
+    if (!core::attitude_usable(q.status)) return st;
+    const core::Mat3<double> r_bn = core::r_bn_from_quat(q.q_nb);
+    const core::Vec3<double> raw(r.raw_nT[0], r.raw_nT[1], r.raw_nT[2]);
+    core::Compensated<double> c;
+    if (!truth_.compensate(raw, &c)) return st;
+    const double f = s.f_nT;
+    f_before.add(raw.norm() - f);
+    f_after.add(r.f_nT - f);
+    f_floor.add(c.intensity - f);
+    const core::Vec3<double> before = r_bn.transpose() * raw;
+    const core::Vec3<double> floor = r_bn.transpose() * c.h_b;
+    for (int k = 0; k < 3; ++k) {
+      const auto kk = static_cast<std::size_t>(k);
+      comp_before[k].add(before(k));
+      comp_after[k].add(r.h_n_nT[kk]);
+      err_before[k].add(before(k) - s.h_n_true_nT(k));
+      err_after[k].add(r.h_n_nT[kk] - s.h_n_true_nT(k));
+      err_floor[k].add(floor(k) - s.h_n_true_nT(k));
+    }
+    return st;
+  }
+
+  Stats f_before, f_after, f_floor, comp_before[3], comp_after[3], err_before[3], err_after[3],
+      err_floor[3];
+
+ private:
+  // Straight parts of the survey lines (not the turns, not the manoeuvre).
+  bool on_line(double t_s) const noexcept {
+    const double tau = t_s - survey_.manoeuvre_s;
+    if (tau < 0) return false;
+    return std::fmod(tau, survey_.line_s + survey_.turn_s) < survey_.line_s;
+  }
+
+  hil::CsvRecordSink& csv_;
+  core::Compensator<double> truth_;
+  drivers::sim::SurveyConfig survey_;
+  Session* session_{nullptr};
+};
+
+const char* state_name(core::CalState s) {
+  switch (s) {
+    case core::CalState::kIdle:
+      return "idle";
+    case core::CalState::kCollecting:
+      return "collecting";
+    case core::CalState::kSolving:
+      return "solving";
+    case core::CalState::kValidating:
+      return "validating";
+    case core::CalState::kApplied:
+      return "applied";
+    case core::CalState::kFailed:
+      return "failed";
+  }
+  return "unknown";
+}
+
+void write_cal(const std::string& path, const LiCal& cal, double validation_rms_nT,
+               const DemoOptions& o) {
+  const core::BatchResult<double>& r = cal.last_result();
+  const double deg = 180.0 / core::kPi<double>;
+  CalibrationFile f;
+  f.model = r.model;
+  f.h_n_nT = r.h_n_nT;
+  const auto v3 = [](const core::Vec3<double>& v, double k) {
+    return std::vector<double>{v(0) * k, v(1) * k, v(2) * k};
+  };
+  f.sigma["ks"] = v3(r.sigma.ks, 1.0);
+  f.sigma["O_deg"] = v3(r.sigma.o_rad, deg);
+  f.sigma["Kof_nT"] = v3(r.sigma.kof, 1.0);
+  f.sigma["Rm_deg"] = v3(r.sigma.rm_rad, deg);
+  f.quality.verdict = core::verdict_name(r.verdict);
+  f.quality.reason = "Li one-step fit in the sensor loop; validated on held-out samples (RMS " +
+                     fixed(validation_rms_nT, 3) + " nT)";
+  f.quality.coverage = r.quality.coverage;
+  f.quality.condition = r.quality.rcond > 0 ? 1.0 / r.quality.rcond : 0.0;
+  f.quality.residual_rms_before_nT = r.quality.intensity_rms_raw_nT;
+  f.quality.residual_rms_after_nT = r.quality.intensity_rms_nT;
+  f.quality.extra["chi2_per_dof"] = r.quality.chi2_per_dof;
+  f.quality.extra["enu_rms_E_nT"] = r.quality.enu_rms_nT(0);
+  f.quality.extra["enu_rms_N_nT"] = r.quality.enu_rms_nT(1);
+  f.quality.extra["enu_rms_U_nT"] = r.quality.enu_rms_nT(2);
+  f.counts.samples = cal.counts().seen;
+  f.counts.used = r.counts.used;
+  f.counts.skipped_nonfinite = cal.counts().rejected;
+  f.counts.rejected_outliers = r.counts.outliers;
+  f.provenance.input = "magvec demo: simulated survey, seed " + std::to_string(o.seed);
+  f.provenance.method = "li_one_step_in_loop";
+  f.provenance.magvec_version = kVersion;
+  f.provenance.created_utc = utc_now_iso8601();
+  write_calibration_file(path, f);
+}
 
 void run(const DemoOptions& o) {
   namespace fs = std::filesystem;
   fs::create_directories(o.out_dir);
-  const std::string path = (fs::path(o.out_dir) / "survey.csv").string();
+  const std::string records_path = (fs::path(o.out_dir) / "records.csv").string();
+  const std::string cal_path = (fs::path(o.out_dir) / "cal.json").string();
 
-  drivers::sim::ScenarioConfig cfg = drivers::sim::scenario_survey();
-  cfg.mag_noise_nT = o.noise_nT;
-  cfg.ins_noise_deg = o.ins_noise_deg;
-  cfg.dropout_probability = o.dropout_rate;
-  drivers::sim::Simulator sim(cfg, o.seed);
-  const std::uint64_t written = write_sim_csv(&sim, path);
+  drivers::sim::ScenarioConfig sc = drivers::sim::scenario_survey();
+  sc.mag_noise_nT = o.noise_nT;
+  sc.ins_noise_deg = o.ins_noise_deg;
+  sc.dropout_probability = o.dropout_rate;
+  drivers::sim::Simulator sim(sc, o.seed);
+  drivers::sim::SimRigConfig rc;
+  rc.link = drivers::sim::MagLink::kSpi;
+  rc.adc.transfer.nT_per_volt = {1e5, 1e5, 1e5};  // 100 uT/V at gain 1: 0.014 nT per code
+  rc.adc.faults.crc_error_probability = o.crc_rate;
+  rc.ins.faults.corrupt_probability = o.ins_corrupt_rate;
+  rc.adc.seed = o.seed ^ 0xA1;
+  rc.ins.seed = o.seed ^ 0xC3;
+  hil::HilConfig hc;
+  hc.loop.noise_nT = o.noise_nT > 0 ? o.noise_nT : 1.0;
+  core::BatchLiCalibratorConfig<double> lc;
+  lc.batch.mag_noise_nT = hc.loop.noise_nT;
+  lc.batch.attitude_noise_deg = o.ins_noise_deg > 0 ? o.ins_noise_deg : 0.01;
 
-  std::cout << "magvec demo: simulated survey (scenario " << cfg.name << ", seed " << o.seed
-            << "): " << written << " samples at " << cfg.rate_hz << " Hz, "
-            << cfg.survey.manoeuvre_s
+  hil::CsvRecordSink csv(records_path, {std::string("magvec ") + kVersion + " demo: survey seed " +
+                                        std::to_string(o.seed) + ", li calibrator in the loop"});
+  ScoringSink sink(csv, sc);
+  auto cal = std::make_unique<LiCal>(lc);
+  auto session = std::make_unique<Session>(sim, rc, *cal, sink, hc);
+  sink.attach(session.get());
+  if (const hal::Status s = session->init(); s != hal::Status::kOk)
+    throw std::runtime_error(std::string("device initialisation failed: ") + hal::to_string(s));
+  std::uint64_t applied_at = 0;
+  while (session->step()) {
+    if (applied_at == 0 && session->loop().cal_id() > 0) applied_at = session->counters().steps;
+  }
+  if (session->counters().sink_errors != 0)
+    throw std::runtime_error("writing " + records_path + " failed: " + csv.last_error());
+  csv.commit();
+
+  const auto& loop = session->loop();
+  const auto& res = cal->last_result();
+  std::cout << "magvec demo: simulated survey (seed " << o.seed << "), " << sc.num_samples
+            << " samples at " << sc.rate_hz << " Hz: " << sc.survey.manoeuvre_s
             << " s calibration manoeuvre (+-30 deg pitch/roll, 3 heading turns) + 4 survey lines\n"
-            << "  sensor: Li et al. 2023 (Ks 1.08/1.02/1.033, O 1.7/3.5/2.1 deg, Kof 4.9/3.4/0.7 "
-               "nT, Rm 5.7/2.1/3.5 "
-               "deg), |h_n| = "
-            << fixed(cfg.h_n_nT.norm(), 1) << " nT\n"
-            << "  noise: magnetometer " << cfg.mag_noise_nT << " nT/axis, INS " << cfg.ins_noise_deg
-            << " deg/angle; dropout probability " << cfg.dropout_probability << "\n"
-            << "  written to " << path << "\n\n";
+            << "  pipeline: simulated ADS131M04 (SPI) + SBG INS (CAN) -> real codecs -> "
+               "AttitudeBuffer -> SensorLoop + Li one-step calibrator (in the loop)\n"
+            << "  noise: magnetometer " << o.noise_nT << " nT/axis, INS " << o.ins_noise_deg
+            << " deg/angle; faults: ADC CRC " << o.crc_rate << ", dropouts " << o.dropout_rate
+            << ", INS corrupt frames " << o.ins_corrupt_rate << "\n\n";
+  std::cout << "Calibration: state " << state_name(loop.state()) << ", cal_id " << loop.cal_id();
+  if (applied_at > 0)
+    std::cout << ", applied at t = " << fixed(static_cast<double>(applied_at) / sc.rate_hz, 2)
+              << " s";
+  std::cout << "; kept " << cal->counts().kept << " of " << cal->counts().seen
+            << " samples (motion-decimated), coverage " << fixed(cal->coverage(), 2) << "; verdict "
+            << core::verdict_name(res.verdict) << "; validation intensity RMS "
+            << fixed(loop.last_validation_rms_nT(), 3) << " nT\n";
+  if (loop.state() != core::CalState::kApplied || !res.ok()) {
+    throw std::runtime_error("the in-loop calibration did not apply (state " +
+                             std::string(state_name(loop.state())) + ", verdict " +
+                             core::verdict_name(res.verdict) + ")");
+  }
+  write_cal(cal_path, *cal, loop.last_validation_rms_nT(), o);
 
-  // Read back through the CSV reader: raw m, F and INS attitude as a consumer of the file sees
-  // them.
-  io::CsvReader reader(path);
-  const auto idx = [&](const char* name) {
-    const auto i = reader.column_index(name);
-    if (!i) throw std::runtime_error(path + ": missing truth column " + name);
-    return *i;
+  // Recovered parameters vs truth.
+  core::LiParams<double> truth;
+  core::to_li(sc.truth, &truth);
+  const double deg = 180.0 / core::kPi<double>;
+  std::cout << "\nParameter          truth       recovered    1-sigma\n";
+  const auto row = [](const std::string& name, double t, double v, double s, int d) {
+    std::cout << "  " << name << std::string(name.size() < 10 ? 10 - name.size() : 0, ' ')
+              << num(t, d) << " " << num(v, d) << " " << num(s, d) << "\n";
   };
-  const std::size_t c_e = idx("hE_true_nT"), c_n = idx("hN_true_nT"), c_u = idx("hU_true_nT");
-  const core::Compensator<double> comp(cfg.truth);
-  const core::Mat3<double> rm_t = cfg.truth.rm_matrix().transpose();
-  Stats f_before_val, f_before_err, f_after_val, f_after_err;
-  Stats comp_before[3], comp_after[3], err_before[3], err_after[3];
-  std::uint64_t rows = 0, dropouts = 0, no_attitude = 0;
-  io::CsvRecord rec;
-  while (reader.next(&rec)) {
-    ++rows;
-    if (rec.dropout) {
-      ++dropouts;
-      continue;
-    }
-    if (!rec.r_bn || !rec.f_nT) {
-      ++no_attitude;
-      continue;
-    }
-    const core::Vec3<double> h_true(reader.value(c_e), reader.value(c_n), reader.value(c_u));
-    core::Compensated<double> c;
-    if (!comp.compensate(rec.m_nT, &c)) continue;
-    const double raw_f = rec.m_nT.norm();
-    f_before_val.add(raw_f);
-    f_before_err.add(raw_f - *rec.f_nT);
-    f_after_val.add(c.intensity);
-    f_after_err.add(c.intensity - *rec.f_nT);
-    const core::Vec3<double> before =
-        rec.r_bn->transpose() * rec.m_nT;  // uncalibrated, rotated to ENU
-    const core::Vec3<double> after = rec.r_bn->transpose() * (rm_t * c.h_s);
-    for (int k = 0; k < 3; ++k) {
-      comp_before[k].add(before(k));
-      comp_after[k].add(after(k));
-      err_before[k].add(before(k) - h_true(k));
-      err_after[k].add(after(k) - h_true(k));
-    }
-  }
-  std::cout << "Read back " << rows << " rows through the CSV reader; " << dropouts
-            << " dropouts (nan) skipped, " << no_attitude << " rows without attitude/F skipped; "
-            << f_after_err.count() << " samples compensated.\n\n"
-            << "*** Compensation uses the TRUE simulation parameters (W, o, Rm of the simulator), "
-               "not a calibration. ***\n"
-            << "*** A later release replaces them with the in-loop calibration.                    "
-               "                ***\n\n";
-  std::cout << "Total field [nT]                 before (raw |m|)   after (|h_s|)\n"
-            << "  mean                         " << num(f_before_val.mean(), 3) << "  "
-            << num(f_after_val.mean(), 3) << "\n"
-            << "  SD                           " << num(f_before_val.sd(), 3) << "  "
-            << num(f_after_val.sd(), 3) << "\n"
-            << "  mean error vs F              " << num(f_before_err.mean(), 3) << "  "
-            << num(f_after_err.mean(), 3) << "\n"
-            << "  RMS error vs F               " << num(f_before_err.rms(), 3) << "  "
-            << num(f_after_err.rms(), 3) << "\n\n";
+  const char* ax[3] = {"x", "y", "z"};
+  for (int k = 0; k < 3; ++k)
+    row(std::string("Ks") + ax[k], truth.ks(k), res.li.ks(k), res.sigma.ks(k), 6);
+  for (int k = 0; k < 3; ++k)
+    row("O" + std::to_string(k + 1) + " deg", truth.o_rad(k) * deg, res.li.o_rad(k) * deg,
+        res.sigma.o_rad(k) * deg, 5);
+  for (int k = 0; k < 3; ++k)
+    row(std::string("Kof") + ax[k] + " nT", truth.kof(k), res.li.kof(k), res.sigma.kof(k), 3);
+  const char* rmn[3] = {"am", "bm", "gm"};
+  for (int k = 0; k < 3; ++k)
+    row(std::string(rmn[k]) + " deg", truth.rm_rad(k) * deg, res.li.rm_rad(k) * deg,
+        res.sigma.rm_rad(k) * deg, 5);
+  for (int k = 0; k < 3; ++k)
+    row(std::string("h_n ") + "ENU"[k] + " nT", sc.h_n_nT(k), res.h_n_nT(k), res.h_n_sigma_nT(k),
+        2);
+
+  std::cout << "\nSurvey lines after the calibration was applied: " << sink.f_after.count()
+            << " records (turns, dropouts, device errors, no-attitude records excluded)\n"
+            << "Total field vs reference F [nT]   before (raw |m|)   after (loop)   floor (true "
+               "params)\n"
+            << "  mean error                   " << num(sink.f_before.mean(), 3) << " "
+            << num(sink.f_after.mean(), 3) << " " << num(sink.f_floor.mean(), 3) << "\n"
+            << "  RMS error                    " << num(sink.f_before.rms(), 3) << " "
+            << num(sink.f_after.rms(), 3) << " " << num(sink.f_floor.rms(), 3) << "\n\n";
   const char* names[3] = {"East ", "North", "Up   "};
-  std::cout
-      << "ENU components [nT]        SD before       SD after   RMS err before  RMS err after\n";
+  std::cout << "ENU components [nT]   SD before   SD after  RMS err before  RMS err after  RMS err "
+               "floor\n";
   for (int k = 0; k < 3; ++k) {
-    std::cout << "  " << names[k] << "            " << num(comp_before[k].sd(), 3) << " "
-              << num(comp_after[k].sd(), 3) << "  " << num(err_before[k].rms(), 3) << " "
-              << num(err_after[k].rms(), 3) << "\n";
+    std::cout << "  " << names[k] << "    " << num(sink.comp_before[k].sd(), 3) << " "
+              << num(sink.comp_after[k].sd(), 3) << " " << num(sink.err_before[k].rms(), 3) << " "
+              << num(sink.err_after[k].rms(), 3) << " " << num(sink.err_floor[k].rms(), 3) << "\n";
   }
-  std::cout << "  (true h_n ENU = " << cfg.h_n_nT.transpose()
-            << " nT; 'before' = raw reading rotated by R_bn^T "
-            << "without calibration)\n\n"
-            << "What remains after compensation is the simulated noise: " << cfg.mag_noise_nT
-            << " nT magnetometer noise on the intensity, and " << cfg.ins_noise_deg
-            << " deg INS angle noise x " << fixed(cfg.h_n_nT.norm(), 0) << " nT = ~"
-            << fixed(core::deg_to_rad(cfg.ins_noise_deg) * cfg.h_n_nT.norm(), 1)
-            << " nT per rotated axis on the components.\n";
+  std::cout << "  ('before' = raw reading rotated by R_bn^T without calibration; 'floor' = the "
+               "TRUE parameters on the same records: the INS and magnetometer noise)\n";
+
+  const auto& c = session->counters();
+  const auto& h = loop.health();
+  const auto& mc = session->mag_counters();
+  const auto& ac = session->attitude_counters();
+  const auto& adc = session->rig().adc().injected();
+  const auto& ins = session->rig().ins().injected();
+  std::cout << "\nHealth (counted / injected): ADC CRC errors " << mc.crc_errors << " / "
+            << adc.crc_corrupted << ", dropouts " << h.dropouts << " / " << adc.not_fresh
+            << " (a dropout frame can itself be lost to a CRC error)"
+            << ", INS malformed frames " << ac.malformed << " / " << ins.corrupted_frames
+            << ", records without attitude " << h.no_attitude << ", INS gaps " << c.att_gaps
+            << ", missing samples " << c.mag_missing << "\n"
+            << "Wrote " << csv.rows() << " records to " << records_path
+            << " and the calibration to " << cal_path << "\n";
 }
 
 }  // namespace
 
 void register_demo(CLI::App& app) {
   auto opt = std::make_shared<DemoOptions>();
-  CLI::App* sub = app.add_subcommand("demo",
-                                     "Temporary demo: simulate a survey, write/read CSV, "
-                                     "compensate with the TRUE parameters, before/after");
-  sub->add_option("--out-dir", opt->out_dir, "Output directory (survey.csv is written there)")
+  CLI::App* sub = app.add_subcommand(
+      "demo",
+      "Simulated survey through the real pipeline: devices -> codecs -> sensor loop with the Li "
+      "calibrator in the loop; writes records.csv and cal.json; before/after table");
+  sub->add_option("--out-dir", opt->out_dir, "Output directory (records.csv, cal.json)")
       ->required();
   sub->add_option("--seed", opt->seed, "Random seed")->capture_default_str();
   sub->add_option("--noise-nT", opt->noise_nT, "Magnetometer noise SD per axis")
@@ -146,6 +292,13 @@ void register_demo(CLI::App& app) {
       ->check(CLI::Range(0.0, 90.0))
       ->capture_default_str();
   sub->add_option("--dropout-rate", opt->dropout_rate, "Dropout probability per sample")
+      ->check(CLI::Range(0.0, 1.0))
+      ->capture_default_str();
+  sub->add_option("--crc-rate", opt->crc_rate, "ADC output-frame corruption probability")
+      ->check(CLI::Range(0.0, 1.0))
+      ->capture_default_str();
+  sub->add_option("--ins-corrupt-rate", opt->ins_corrupt_rate,
+                  "INS CAN frame corruption probability")
       ->check(CLI::Range(0.0, 1.0))
       ->capture_default_str();
   sub->callback([opt] { run(*opt); });

@@ -2,10 +2,15 @@
 // real bytes -> real drivers -> AttitudeBuffer -> SensorLoop -> record CSV, in simulated time (as
 // fast as possible, deterministic from --seed). Prints a summary with every health counter next
 // to the number of faults injected.
-// --calibrator: only `none` exists today (no calibration runs; the output uses the calibration
-// given with --calibration FILE, or the identity model, and is flagged uncalibrated while
-// cal_id = 0). The EKF (`ekf`) and the batch Li calibrator (`li`) plug into HilSession<Calibrator>
-// when they land.
+// --calibrator (the calibration starts at the first sample; the loop's state machine collects,
+// solves, validates on held-out samples and applies; the previous calibration, from
+// --calibration FILE or the identity, stays active until then):
+//   li    core::BatchLiCalibrator (Li et al. 2023 one-step fit, ERRATA 000), motion-decimated
+//   store; ekf   core::EkfCalibrator (Ge et al. 2017 EKF, ERRATA 002) + misalignment fit for the
+//   INS
+//         alignment (--ekf-no-align: EKF model only, Rm = I; then h_n is NOT aligned to the INS and
+//         the summary says so);
+//   none  no calibration runs (flagged uncalibrated while cal_id = 0).
 #include <CLI/CLI.hpp>
 #include <cmath>
 #include <iostream>
@@ -15,6 +20,8 @@
 
 #include "calibration/calibration_file.hpp"
 #include "commands.hpp"
+#include "magvec/core/batch_li_calibrator.hpp"
+#include "magvec/core/ekf_calibrator.hpp"
 #include "magvec/host/hil/csv_record_sink.hpp"
 #include "magvec/host/hil/hil_session.hpp"
 #include "sim_csv.hpp"
@@ -31,7 +38,87 @@ struct RunOptions {
   std::string calibrator = "none";
   std::string calibration;
   std::string out;
+  bool ekf_no_align = false;
 };
+
+using LiCal = core::BatchLiCalibrator<double, 512>;
+using EkfCal = core::EkfCalibrator<double, 256>;
+
+const char* state_name(core::CalState s) {
+  switch (s) {
+    case core::CalState::kIdle:
+      return "idle";
+    case core::CalState::kCollecting:
+      return "collecting";
+    case core::CalState::kSolving:
+      return "solving";
+    case core::CalState::kValidating:
+      return "validating";
+    case core::CalState::kApplied:
+      return "applied";
+    case core::CalState::kFailed:
+      return "failed";
+  }
+  return "unknown";
+}
+
+const char* failure_name(core::CalFailure f) {
+  switch (f) {
+    case core::CalFailure::kNone:
+      return "none";
+    case core::CalFailure::kSolverRejected:
+      return "solver_rejected";
+    case core::CalFailure::kValidationFailed:
+      return "validation_failed";
+    case core::CalFailure::kNoReference:
+      return "no_reference";
+  }
+  return "unknown";
+}
+
+// Calibrator-specific part of the summary.
+std::string solver_reason(const host::hil::NullCalibrator&, std::uint8_t) {
+  return "none";
+}
+std::string solver_reason(const LiCal&, std::uint8_t code) {
+  return core::verdict_name(static_cast<core::Verdict>(code));
+}
+std::string solver_reason(const EkfCal&, std::uint8_t code) {
+  return core::ekf_cal_code_name(code);
+}
+
+void describe(const host::hil::NullCalibrator&, std::ostream&) {}
+void describe(const LiCal& cal, std::ostream& os) {
+  const auto& c = cal.counts();
+  os << "  li calibrator: seen " << c.seen << ", kept " << c.kept << ", decimated " << c.decimated
+     << ", rejected " << c.rejected << ", store full " << c.full << ", coverage " << cal.coverage()
+     << "\n";
+  if (!cal.solved()) return;
+  const auto& r = cal.last_result();
+  os << "  li solve: verdict " << core::verdict_name(r.verdict) << ", used " << r.counts.used
+     << ", outliers " << r.counts.outliers << ", intensity rms " << r.quality.intensity_rms_nT
+     << " nT, chi2/dof " << r.quality.chi2_per_dof << "\n";
+  if (!r.ok()) return;
+  const double deg = 180.0 / core::kPi<double>;
+  os << "    Ks " << r.li.ks.transpose() << ", O [deg] " << (r.li.o_rad * deg).transpose()
+     << ", Kof [nT] " << r.li.kof.transpose() << ", Rm [deg] " << (r.li.rm_rad * deg).transpose()
+     << ", h_n [nT] " << r.h_n_nT.transpose() << "\n";
+}
+void describe(const EkfCal& cal, std::ostream& os) {
+  const auto& c = cal.filter().counters();
+  os << "  ekf calibrator: updates " << c.updates << ", gated " << c.gated << ", rejected "
+     << c.rejected_nonfinite + c.rejected_reference << ", reinitialisations " << c.reinitialisations
+     << ", sigma_F " << cal.sigma_f_nT() << " nT, alignment samples " << cal.align_samples()
+     << "\n";
+  if (!cal.config().align) {
+    os << "  WARNING: --ekf-no-align: the EKF gives W only up to a rotation and Rm = I; h_n "
+          "(hE/hN/hU) is NOT aligned to the INS\n";
+  } else if (cal.aligned()) {
+    const double deg = 180.0 / core::kPi<double>;
+    os << "  alignment: Rm [deg] " << (cal.alignment().rm_rad * deg).transpose() << ", h_n [nT] "
+       << cal.alignment().h_n.transpose() << "\n";
+  }
+}
 
 double number(const std::string& key, const std::string& text) {
   std::size_t used = 0;
@@ -154,6 +241,19 @@ void run_session(const RunOptions& o, drivers::sim::Simulator& sim,
             << h.device_errors << ", no attitude " << h.no_attitude << ", calibrations applied "
             << h.calibrations_applied << ", failed " << h.calibrations_failed << ", final cal_id "
             << session->loop().cal_id() << "\n";
+  const auto& lp = session->loop();
+  std::cout << "  calibration: state " << state_name(lp.state()) << ", progress " << lp.progress()
+            << ", cal_id " << lp.cal_id();
+  if (lp.state() == core::CalState::kFailed) {
+    std::cout << ", failure " << failure_name(lp.failure());
+    if (lp.failure() == core::CalFailure::kSolverRejected)
+      std::cout << " (" << solver_reason(cal, lp.solver_code()) << ")";
+  }
+  if (lp.state() == core::CalState::kApplied || lp.failure() == core::CalFailure::kValidationFailed)
+    std::cout << ", validation intensity rms " << lp.last_validation_rms_nT() << " nT";
+  std::cout << "; calibrator used " << h.cal_used << ", gated " << h.cal_gated << ", rejected "
+            << h.cal_rejected << "\n";
+  describe(cal, std::cout);
   std::cout << "  injected: ";
   if (rc.link == drivers::sim::MagLink::kSpi) {
     std::cout << "crc " << adc.crc_corrupted << ", saturation " << adc.saturated << " (frames "
@@ -188,10 +288,23 @@ void run(const RunOptions& o) {
   hc.loop.noise_nT = sc.mag_noise_nT > 0 ? sc.mag_noise_nT : 1.0;
   hc.ins_latency_comp_us = rc.ins.can_latency_us;
   drivers::sim::Simulator sim(sc, o.seed);
-  // Only "none" exists (see the file comment).
-  host::hil::NullCalibrator cal;
-  hc.start_calibration = false;
-  run_session(o, sim, rc, cal, hc);
+  if (o.calibrator == "li") {
+    core::BatchLiCalibratorConfig<double> lc;
+    lc.batch.mag_noise_nT = sc.mag_noise_nT > 0 ? sc.mag_noise_nT : 1.0;
+    lc.batch.attitude_noise_deg = sc.ins_noise_deg > 0 ? sc.ins_noise_deg : 0.01;
+    auto cal = std::make_unique<LiCal>(lc);
+    run_session(o, sim, rc, *cal, hc);
+  } else if (o.calibrator == "ekf") {
+    core::EkfCalibratorConfig<double> ec;
+    ec.ekf.noise_sigma_nT = hc.loop.noise_nT;
+    ec.align = !o.ekf_no_align;
+    auto cal = std::make_unique<EkfCal>(ec);
+    run_session(o, sim, rc, *cal, hc);
+  } else {
+    host::hil::NullCalibrator cal;
+    hc.start_calibration = false;
+    run_session(o, sim, rc, cal, hc);
+  }
 }
 
 }  // namespace
@@ -214,9 +327,12 @@ void register_run(CLI::App& app) {
       ->check(CLI::IsMember({"spi", "serial"}))
       ->capture_default_str();
   sub->add_option("--calibrator", opt->calibrator,
-                  "In-loop calibrator (only 'none' so far; 'ekf' and 'li' to come)")
-      ->check(CLI::IsMember({"none"}))
+                  "In-loop calibrator: li (batch one-step), ekf (online EKF + misalignment fit), "
+                  "none")
+      ->check(CLI::IsMember({"none", "li", "ekf"}))
       ->capture_default_str();
+  sub->add_flag("--ekf-no-align", opt->ekf_no_align,
+                "ekf: skip the misalignment fit (Rm = I; h_n not aligned to the INS)");
   sub->add_option("--calibration", opt->calibration,
                   "Calibration file (cal.json) installed as the active calibration (cal_id 1)")
       ->check(CLI::ExistingFile);

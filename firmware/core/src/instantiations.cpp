@@ -1,12 +1,18 @@
 // Explicit instantiation of the core templates for both scalar types, so that every template is
 // compiled (and warning-checked) on the host and for the MCU targets.
 #include "magvec/core/attitude_buffer.hpp"
+#include "magvec/core/batch_li_calibrator.hpp"
 #include "magvec/core/compensator.hpp"
+#include "magvec/core/ekf_calibrator.hpp"
 #include "magvec/core/frames.hpp"
 #include "magvec/core/sensor_model.hpp"
 
 namespace magvec::core {
 
+template class BatchLiCalibrator<float, 128>;
+template class BatchLiCalibrator<double, 128>;
+template class EkfCalibrator<float, 64>;
+template class EkfCalibrator<double, 64>;
 template class AttitudeBuffer<float, 64>;
 template class AttitudeBuffer<double, 64>;
 template Quat<float> slerp_unit(const Quat<float>&, const Quat<float>&, float) noexcept;

@@ -4,6 +4,7 @@
 #include <stdlib.h>
 #include <sys/wait.h>
 
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -11,6 +12,7 @@
 #include <string>
 #include <vector>
 
+#include "calibration/calibration_file.hpp"
 #include "magvec/core/compensator.hpp"
 #include "magvec/drivers/sim/simulator.hpp"
 #include "magvec/host/io/csv.hpp"
@@ -159,13 +161,41 @@ TEST_F(Cli, BadOptionValuesFailWithAMessage) {
   EXPECT_FALSE(fs::exists(file("x.csv")));
 }
 
-TEST_F(Cli, DemoWritesTheSurveyAndSaysItUsesTheTruth) {
+TEST_F(Cli, DemoCalibratesInTheLoopAndWritesRecordsAndCalibration) {
   const Result r = run("demo --out-dir " + file("demo"));
   ASSERT_EQ(r.status, 0) << r.output;
-  EXPECT_TRUE(fs::exists(dir_ / "demo" / "survey.csv"));
-  EXPECT_NE(r.output.find("uses the TRUE simulation parameters"), std::string::npos) << r.output;
-  EXPECT_NE(r.output.find("RMS error vs F"), std::string::npos);
+  EXPECT_TRUE(fs::exists(dir_ / "demo" / "records.csv"));
+  ASSERT_TRUE(fs::exists(dir_ / "demo" / "cal.json"));
+  EXPECT_NE(r.output.find("Calibration: state applied, cal_id 1"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("verdict ok"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("RMS error"), std::string::npos);
   EXPECT_NE(r.output.find("North"), std::string::npos);
+  EXPECT_NE(r.output.find("ADC CRC errors"), std::string::npos);
+  // The calibration file round-trips and is close to the simulation truth.
+  const magvec::host::CalibrationFile cal =
+      magvec::host::read_calibration_file((dir_ / "demo" / "cal.json").string());
+  const magvec::core::SensorModel<double> truth = magvec::drivers::sim::scenario_survey().truth;
+  EXPECT_LT((cal.model.w - truth.w).norm(), 1e-3);
+  // Offsets within 4 of their reported 1-sigma (a +-30 deg manoeuvre leaves Kof at ~0.2-1.2 nT).
+  ASSERT_EQ(cal.sigma.count("Kof_nT"), 1u);
+  for (int k = 0; k < 3; ++k) {
+    const double sigma = cal.sigma.at("Kof_nT")[static_cast<std::size_t>(k)];
+    EXPECT_GT(sigma, 0.0);
+    EXPECT_LE(std::abs(cal.model.o(k) - truth.o(k)), 4.0 * sigma) << k;
+  }
+  EXPECT_LT(cal.model.rm.angularDistance(truth.rm), 1e-3);
+  // The records carry cal_id 1 after the calibration was applied.
+  magvec::host::io::CsvReader reader((dir_ / "demo" / "records.csv").string());
+  const auto cal_col = reader.column_index("cal_id");
+  ASSERT_TRUE(cal_col.has_value());
+  magvec::host::io::CsvRecord rec;
+  std::uint64_t rows = 0, calibrated = 0;
+  while (reader.next(&rec)) {
+    ++rows;
+    calibrated += reader.value(*cal_col) == 1.0 ? 1u : 0u;
+  }
+  EXPECT_GT(rows, 60000u);
+  EXPECT_GT(calibrated, rows / 2);
 }
 
 }  // namespace
@@ -198,8 +228,35 @@ TEST_F(Cli, RunSimWritesRecordsAndCountsFaults) {
 TEST_F(Cli, RunRejectsUnknownFaultsAndCalibrators) {
   EXPECT_NE(run("run --sim survey --duration 1 --faults bogus=1 --out " + file("a.csv")).status, 0);
   EXPECT_NE(run("run --sim survey --duration 1 --faults crc=2 --out " + file("a.csv")).status, 0);
-  EXPECT_NE(run("run --sim survey --duration 1 --calibrator ekf --out " + file("a.csv")).status, 0);
+  EXPECT_NE(run("run --sim survey --duration 1 --calibrator bogus --out " + file("a.csv")).status,
+            0);
   EXPECT_FALSE(fs::exists(file("a.csv")));
+}
+
+TEST_F(Cli, RunWithTheLiCalibratorCalibratesInTheLoop) {
+  const Result r =
+      run("run --sim survey --duration 90 --seed 3 --calibrator li --faults crc=0.01 "
+          "--out " +
+          file("li.csv"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("calibration: state applied"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("cal_id 1"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("li solve: verdict ok"), std::string::npos) << r.output;
+}
+
+TEST_F(Cli, RunWithTheEkfCalibratorReportsAlignment) {
+  const Result r =
+      run("run --sim survey --duration 90 --seed 3 --calibrator ekf --out " + file("ekf.csv"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("ekf calibrator: updates"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("calibration: state applied"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("alignment: Rm [deg]"), std::string::npos) << r.output;
+  const Result na =
+      run("run --sim survey --duration 90 --seed 3 --calibrator ekf --ekf-no-align "
+          "--out " +
+          file("ekf2.csv"));
+  ASSERT_EQ(na.status, 0) << na.output;
+  EXPECT_NE(na.output.find("NOT aligned to the INS"), std::string::npos) << na.output;
 }
 
 }  // namespace

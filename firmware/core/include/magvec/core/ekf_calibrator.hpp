@@ -1,0 +1,221 @@
+// EkfCalibrator: the online scalar EKF of Ge et al. 2017 (ERRATA 002; scalar_ekf.hpp) behind the
+// SensorLoop Calibrator contract (sensor_loop.hpp), plus the misalignment step it needs to give
+// vector output.
+//
+// Why a misalignment step (DECISION): a scalar (|h|) method observes only G = W^T W and o
+// (ERRATA 002-2): the EKF's W is known up to an arbitrary rotation and its Rm is the identity, so
+// h_n computed from an EKF-only model is rotated away from the INS frame by that unknown rotation
+// (degrees to tens of degrees: the EKF pins W upper-triangular). Vector output therefore needs
+// attitude. With `align` on (default) the adapter keeps a small motion-decimated store of
+// {raw m, F, R_bn} while the filter runs and, at solve(), fits the rotation and the local field
+// with the joint fit of ERRATA 000-5 (misalignment.hpp joint_rm_hn, closed-form start, so a large
+// rotation is fine) for the EKF's (W, o); the result is re-expressed in Li form
+// (canonicalize_li). If the attitudes do not determine the rotation the solve is refused
+// (kAlignUnobservable etc.): never a silently misaligned calibration. With `align` off the model
+// is the filter's (Rm = I) and aligned() is false: only |h| and h_s are meaningful; the
+// caller must not publish h_n (documented, and reported by `magvec run`).
+//
+// add(): every finite sample updates the filter (attitude not needed); EkfStatus::kGated ->
+// CalibratorAdd::kGated, non-finite sample or unusable reference -> kRejected, else kUsed.
+// ready(): the filter is initialised, has made >= min_updates accepted updates since begin(), the
+// predicted 1-sigma of the calibrated intensity at the last sample is <= max_sigma_f_nT, and (with
+// align) the alignment store holds >= min_align_samples samples.
+// Heap-free, noexcept, Scalar-templated (float and double).
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+
+#include "magvec/core/batch_li_calibrator.hpp"
+#include "magvec/core/misalignment.hpp"
+#include "magvec/core/sample_store.hpp"
+#include "magvec/core/scalar_ekf.hpp"
+#include "magvec/core/sensor_loop.hpp"
+#include "magvec/core/sensor_model.hpp"
+#include "magvec/core/types.hpp"
+
+namespace magvec::core {
+
+// CalibratorSolve::code of EkfCalibrator refusals.
+enum class EkfCalCode : std::uint8_t {
+  kOk = 0,
+  kNotInitialised = 1,      // the filter has no initial fit yet
+  kAlignTooFewSamples = 2,  // not enough attitude samples for the misalignment fit
+  kAlignUnobservable = 3,   // no pitch/roll variety: rotation about the vertical undetermined
+  kAlignIllConditioned = 4,
+  kAlignNotConverged = 5,
+  kNotLiRepresentable = 6,  // W singular or a reflection
+};
+
+inline const char* ekf_cal_code_name(std::uint8_t code) noexcept {
+  switch (static_cast<EkfCalCode>(code)) {
+    case EkfCalCode::kOk:
+      return "ok";
+    case EkfCalCode::kNotInitialised:
+      return "ekf_not_initialised";
+    case EkfCalCode::kAlignTooFewSamples:
+      return "alignment_too_few_samples";
+    case EkfCalCode::kAlignUnobservable:
+      return "alignment_unobservable_heading";
+    case EkfCalCode::kAlignIllConditioned:
+      return "alignment_ill_conditioned";
+    case EkfCalCode::kAlignNotConverged:
+      return "alignment_not_converged";
+    case EkfCalCode::kNotLiRepresentable:
+      return "model_not_li_representable";
+  }
+  return "unknown";
+}
+
+template <typename Scalar>
+struct EkfCalibratorConfig {
+  EkfConfig<Scalar> ekf{};
+  std::uint32_t min_updates = 2000;  // accepted filter updates after the initial fit
+  Scalar max_sigma_f_nT{Scalar(0.1)};
+  bool align = true;
+  Scalar align_min_step_deg{2};  // decimation of the alignment store (attitude change)
+  std::size_t min_align_samples = 100;
+  MisalignmentOptions<Scalar> misalignment{};
+};
+
+template <typename Scalar, std::size_t AlignCapacity = 256, int InitCapacity = 64>
+class EkfCalibrator {
+  static_assert(CoreScalar<Scalar>);
+  static_assert(AlignCapacity >= 16, "the misalignment fit needs well over 9 samples");
+
+ public:
+  using Config = EkfCalibratorConfig<Scalar>;
+  using Filter = ScalarEkf<Scalar, InitCapacity>;
+
+  explicit EkfCalibrator(const Config& config = Config{}) noexcept
+      : cfg_(config), ekf_(config.ekf) {
+    begin();
+  }
+
+  void configure(const Config& config) noexcept {
+    cfg_ = config;
+    begin();
+  }
+  const Config& config() const noexcept { return cfg_; }
+
+  // --- SensorLoop Calibrator contract ---------------------------------------------------------
+  void begin() noexcept {
+    ekf_.configure(cfg_.ekf);
+    store_.clear();
+    updates_at_begin_ = 0;
+    have_last_ = false;
+    have_m_ = false;
+    aligned_ = false;
+    align_ = MisalignmentSolution<Scalar>{};
+  }
+
+  CalibratorAdd add(const Vec3<Scalar>& m, Scalar f_ref_nT, const Mat3<Scalar>* r_bn) noexcept {
+    const EkfStatus st = ekf_.update(m, f_ref_nT);
+    if (st == EkfStatus::kRejectedNonFinite || st == EkfStatus::kRejectedBadReference)
+      return CalibratorAdd::kRejected;
+    if (st == EkfStatus::kGated) return CalibratorAdd::kGated;
+    last_m_ = m;
+    have_m_ = true;
+    if (cfg_.align && r_bn != nullptr && r_bn->allFinite()) keep_for_alignment(m, f_ref_nT, *r_bn);
+    return CalibratorAdd::kUsed;
+  }
+
+  Scalar progress() const noexcept {
+    if (!ekf_.initialised()) return Scalar(0);
+    const Scalar pu = static_cast<Scalar>(updates()) /
+                      static_cast<Scalar>(std::max<std::uint32_t>(cfg_.min_updates, 1U));
+    const Scalar sig = sigma_f_nT();
+    const Scalar ps = sig > 0 ? cfg_.max_sigma_f_nT / sig : Scalar(1);
+    Scalar p = std::min(pu, ps);
+    if (cfg_.align) {
+      p = std::min(p, static_cast<Scalar>(store_.size()) /
+                          static_cast<Scalar>(std::max<std::size_t>(min_align(), 1)));
+    }
+    return std::clamp(p, Scalar(0), Scalar(1));
+  }
+
+  bool ready() const noexcept {
+    if (!ekf_.initialised() || updates() < cfg_.min_updates) return false;
+    if (cfg_.align && store_.size() < min_align()) return false;
+    return sigma_f_nT() <= cfg_.max_sigma_f_nT;
+  }
+
+  CalibratorSolve solve(SensorModel<Scalar>* out) noexcept {
+    aligned_ = false;
+    if (!ekf_.initialised()) return fail(EkfCalCode::kNotInitialised);
+    SensorModel<Scalar> model = ekf_.model();
+    if (cfg_.align) {
+      align_ = joint_rm_hn(store_, model.w, model.o, cfg_.misalignment);
+      switch (align_.status) {
+        case MisalignmentStatus::kOk:
+          break;
+        case MisalignmentStatus::kTooFewSamples:
+          return fail(EkfCalCode::kAlignTooFewSamples);
+        case MisalignmentStatus::kUnobservableHeading:
+          return fail(EkfCalCode::kAlignUnobservable);
+        case MisalignmentStatus::kIllConditioned:
+          return fail(EkfCalCode::kAlignIllConditioned);
+        case MisalignmentStatus::kNotConverged:
+          return fail(EkfCalCode::kAlignNotConverged);
+      }
+      model.rm = Quat<Scalar>(li_rm(align_.rm_rad));
+      model.rm.normalize();
+      SensorModel<Scalar> li;
+      if (canonicalize_li(model, &li) != ConversionStatus::kOk)
+        return fail(EkfCalCode::kNotLiRepresentable);
+      model = li;
+      aligned_ = true;
+    }
+    *out = model;
+    return CalibratorSolve{true, 0};
+  }
+
+  // --- diagnostics ------------------------------------------------------------------------------
+  // True when the last solved model is aligned to the INS (Rm fitted): h_n is meaningful.
+  bool aligned() const noexcept { return aligned_; }
+  const MisalignmentSolution<Scalar>& alignment() const noexcept { return align_; }
+  const Filter& filter() const noexcept { return ekf_; }
+  std::uint32_t updates() const noexcept { return ekf_.counters().updates - updates_at_begin_; }
+  std::size_t align_samples() const noexcept { return store_.size(); }
+  // Predicted 1-sigma of the calibrated intensity at the last used sample (inf before the fit).
+  Scalar sigma_f_nT() const noexcept {
+    if (!ekf_.initialised() || !have_m_) return std::numeric_limits<Scalar>::infinity();
+    return ekf_.intensity_sigma_nT(last_m_);
+  }
+
+ private:
+  std::size_t min_align() const noexcept {
+    return std::clamp<std::size_t>(cfg_.min_align_samples, 9, AlignCapacity);
+  }
+
+  void keep_for_alignment(const Vec3<Scalar>& m, Scalar f, const Mat3<Scalar>& r_bn) noexcept {
+    if (store_.full() || !(std::isfinite(f) && f > 0)) return;
+    if (have_last_ &&
+        batch_li_detail::rotation_angle(r_bn, last_r_bn_) < deg_to_rad(cfg_.align_min_step_deg)) {
+      return;
+    }
+    if (store_.push(m, f, &r_bn)) {
+      last_r_bn_ = r_bn;
+      have_last_ = true;
+    }
+  }
+
+  CalibratorSolve fail(EkfCalCode code) noexcept {
+    return CalibratorSolve{false, static_cast<std::uint8_t>(code)};
+  }
+
+  Config cfg_;
+  Filter ekf_;
+  SampleStore<Scalar, AlignCapacity> store_{};
+  MisalignmentSolution<Scalar> align_{};
+  std::uint32_t updates_at_begin_{0};
+  bool have_last_{false};
+  bool have_m_{false};
+  bool aligned_{false};
+  Vec3<Scalar> last_m_ = Vec3<Scalar>::Zero();
+  Mat3<Scalar> last_r_bn_ = Mat3<Scalar>::Identity();
+};
+
+}  // namespace magvec::core

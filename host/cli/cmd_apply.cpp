@@ -6,8 +6,8 @@
 #include <CLI/CLI.hpp>
 #include <cmath>
 #include <iostream>
-#include <memory>
 #include <limits>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -40,15 +40,15 @@ void run(const ApplyOptions& o) {
                                 ? o.outlier_nT
                                 : std::fmax(6.0 * cal.quality.residual_rms_after_nT, 1.0);
 
-  std::vector<std::string> columns = {"t_s",    "hx_nT",  "hy_nT",  "hz_nT", "hsx_nT",
-                                      "hsy_nT", "hsz_nT", "F_nT"};
+  std::vector<std::string> columns = {"t_s",    "hx_nT",  "hy_nT",  "hz_nT",
+                                      "hsx_nT", "hsy_nT", "hsz_nT", "F_nT"};
   if (has_attitude) columns.insert(columns.end(), {"hE_nT", "hN_nT", "hU_nT"});
   columns.emplace_back("flags");
-  io::CsvWriter writer(o.out_path, columns,
-                       {"magvec apply: calibration " + o.cal_path + " (method " +
-                            cal.provenance.method + ") applied to " + o.in_path,
-                        "flags: 1 dropout, 32 outlier (|F - F_ref| > " + fixed(outlier_nT, 3) +
-                            " nT)"});
+  io::CsvWriter writer(
+      o.out_path, columns,
+      {"magvec apply: calibration " + o.cal_path + " (method " + cal.provenance.method +
+           ") applied to " + o.in_path,
+       "flags: 1 dropout, 32 outlier (|F - F_ref| > " + fixed(outlier_nT, 3) + " nT)"});
 
   const core::Compensator<double> comp(cal.model);
   const double nan = std::numeric_limits<double>::quiet_NaN();
@@ -60,18 +60,22 @@ void run(const ApplyOptions& o) {
     ++rows;
     std::size_t k = 0;
     row[k++] = rec.t_s;
-    for (int i = 0; i < 3; ++i) row[k++] = rec.m_nT(i);
+    for (int i = 0; i < 3; ++i)
+      row[k++] = rec.m_nT(i);
     std::uint32_t flags = 0;
     core::Compensated<double> c;
     if (rec.dropout || !comp.compensate(rec.m_nT, &c)) {
       ++dropouts;
       flags |= core::kOutDropout;
-      for (int i = 0; i < 4; ++i) row[k++] = nan;
+      for (int i = 0; i < 4; ++i)
+        row[k++] = nan;
       if (has_attitude) {
-        for (int i = 0; i < 3; ++i) row[k++] = nan;
+        for (int i = 0; i < 3; ++i)
+          row[k++] = nan;
       }
     } else {
-      for (int i = 0; i < 3; ++i) row[k++] = c.h_s(i);
+      for (int i = 0; i < 3; ++i)
+        row[k++] = c.h_s(i);
       row[k++] = c.intensity;
       if (rec.f_nT && std::isfinite(*rec.f_nT)) {
         before.add(rec.m_nT.norm() - *rec.f_nT);
@@ -84,11 +88,13 @@ void run(const ApplyOptions& o) {
       if (has_attitude) {
         if (rec.r_bn) {
           const core::Vec3<double> h_n = core::Compensator<double>::to_nav(c.h_b, *rec.r_bn);
-          for (int i = 0; i < 3; ++i) row[k++] = h_n(i);
+          for (int i = 0; i < 3; ++i)
+            row[k++] = h_n(i);
         } else {
           ++no_attitude;
           flags |= core::kOutNoAttitude;
-          for (int i = 0; i < 3; ++i) row[k++] = nan;
+          for (int i = 0; i < 3; ++i)
+            row[k++] = nan;
         }
       }
     }
@@ -98,8 +104,7 @@ void run(const ApplyOptions& o) {
   writer.commit();
 
   std::cout << "magvec apply: " << rows << " rows -> " << o.out_path << " (" << dropouts
-            << " dropouts, " << outliers << " outliers, " << no_attitude
-            << " without attitude)\n";
+            << " dropouts, " << outliers << " outliers, " << no_attitude << " without attitude)\n";
   if (after.count() > 0) {
     std::cout << "  intensity residual vs reference F: RMS " << fixed(before.rms(), 3)
               << " nT raw -> " << fixed(after.rms(), 3) << " nT compensated (mean "
@@ -111,7 +116,8 @@ void run(const ApplyOptions& o) {
 
 void register_apply(CLI::App& app) {
   auto opts = std::make_shared<ApplyOptions>();
-  CLI::App* cmd = app.add_subcommand("apply", "Compensate a recording with a calibration (cal.json)");
+  CLI::App* cmd =
+      app.add_subcommand("apply", "Compensate a recording with a calibration (cal.json)");
   cmd->add_option("--cal", opts->cal_path, "Calibration file (cal.json)")->required();
   cmd->add_option("--in", opts->in_path, "Input CSV recording")->required();
   cmd->add_option("--out", opts->out_path, "Output CSV")->required();

@@ -19,7 +19,9 @@ class Stats {
   }
   double mean() const noexcept { return mean_; }
   double sd() const noexcept { return n_ > 1 ? std::sqrt(m2_ / static_cast<double>(n_ - 1)) : 0.0; }
-  double rms() const noexcept { return n_ > 0 ? std::sqrt(sum_sq_ / static_cast<double>(n_)) : 0.0; }
+  double rms() const noexcept {
+    return n_ > 0 ? std::sqrt(sum_sq_ / static_cast<double>(n_)) : 0.0;
+  }
   std::uint64_t count() const noexcept { return n_; }
 
  private:

@@ -123,5 +123,3 @@ void BM_OneStepPass(benchmark::State& state) {
 BENCHMARK(BM_OneStepPass)->Unit(benchmark::kMicrosecond);
 
 }  // namespace
-
-

@@ -98,8 +98,7 @@ FeedResult CanDecoder::feed(const hal::CanFrame& f) noexcept {
     // with a time stamp of an earlier epoch.
     const std::uint32_t attitude_id =
         config_.source == AttitudeMessage::kQuaternion ? ids.ekf_quat : ids.ekf_euler;
-    if (f.id == ids.ekf_info || f.id == attitude_id)
-      time_fresh_ = false;
+    if (f.id == ids.ekf_info || f.id == attitude_id) time_fresh_ = false;
     ++counters_.malformed;
     return FeedResult::kMalformed;
   };

@@ -43,8 +43,7 @@ inline Mat3<double> random_rotation(std::mt19937_64& rng) {
 
 // Li Euler angles of the true attitudes with independent noise on each angle.
 inline Mat3<double> with_ins_noise(const Mat3<double>& r, double sigma_rad, std::mt19937_64& rng) {
-  if (sigma_rad == 0)
-    return r;
+  if (sigma_rad == 0) return r;
   std::normal_distribution<double> n(0, sigma_rad);
   LiEuler<double> e = li_from_r_bn(r);
   e.alpha += n(rng);

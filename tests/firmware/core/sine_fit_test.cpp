@@ -33,8 +33,7 @@ Vec3<double> field_enu(double decl) {
 
 // Mounting of the XZ sweep: body components of Up.
 Mat3<double> xz_mount(const SineParams<double>& p, SineFixture fixture) {
-  if (fixture == SineFixture::kHousingY)
-    return rot_x(kPi<double> / 2);  // housing +y up
+  if (fixture == SineFixture::kHousingY) return rot_x(kPi<double> / 2);  // housing +y up
   const Vec3<double> zm(std::cos(p.beta_rad) * std::sin(p.gamma_rad),
                         std::sin(p.beta_rad) * std::sin(p.gamma_rad), std::cos(p.gamma_rad));
   const Vec3<double> n = Vec3<double>::UnitX().cross(zm).normalized();

@@ -230,12 +230,9 @@ class BatchCalibrator {
     Verdict v = Verdict::kOk;
     if (mis.status == MisalignmentStatus::kUnobservableHeading)
       v = Verdict::kUnobservableHeadingMisalignment;
-    if (mis.status == MisalignmentStatus::kIllConditioned)
-      v = Verdict::kIllConditioned;
-    if (mis.status == MisalignmentStatus::kNotConverged)
-      v = Verdict::kNotConverged;
-    if (mis.status == MisalignmentStatus::kTooFewSamples)
-      v = Verdict::kTooFewSamples;
+    if (mis.status == MisalignmentStatus::kIllConditioned) v = Verdict::kIllConditioned;
+    if (mis.status == MisalignmentStatus::kNotConverged) v = Verdict::kNotConverged;
+    if (mis.status == MisalignmentStatus::kTooFewSamples) v = Verdict::kTooFewSamples;
     if (method == BatchMethod::kOneStep && v == Verdict::kOk) {
       OneStepOptions<Scalar> oopt;
       oopt.mag_noise_nT = cfg_.mag_noise_nT;
@@ -298,12 +295,10 @@ class BatchCalibrator {
   Scalar coverage(const SensorModel<Scalar>& model) const noexcept {
     std::uint32_t cells = 0;
     for (std::size_t i = 0; i < store_.size(); ++i) {
-      if (store_[i].outlier())
-        continue;
+      if (store_[i].outlier()) continue;
       const Vec3<Scalar> h = model.w * (store_[i].raw() - model.o);
       const Scalar len = h.norm();
-      if (!(len > Scalar(0)))
-        continue;
+      if (!(len > Scalar(0))) continue;
       const Vec3<Scalar> d = h / len;
       int band = static_cast<int>((d(2) + Scalar(1)) * Scalar(0.5) * Scalar(kCoverageBands));
       band = std::clamp(band, 0, kCoverageBands - 1);
@@ -320,8 +315,7 @@ class BatchCalibrator {
 
  private:
   AddStatus add(const Vec3<Scalar>& m, Scalar f, const Mat3<Scalar>* r_bn) noexcept {
-    if (!std::isfinite(f))
-      f = cfg_.field_nT;
+    if (!std::isfinite(f)) f = cfg_.field_nT;
     const bool bad_att = r_bn != nullptr && !r_bn->allFinite();
     if (!m.allFinite() || !std::isfinite(f) || !(f > Scalar(0)) || bad_att) {
       ++counts_.skipped_nonfinite;
@@ -347,8 +341,7 @@ class BatchCalibrator {
       EllipsoidFit<Scalar> fit;
       fit.set_normalization(norm);
       for (std::size_t i = 0; i < store_.size(); ++i) {
-        if (in_use(store_[i], need_att))
-          fit.add(store_[i].raw(), store_[i].f);
+        if (in_use(store_[i], need_att)) fit.add(store_[i].raw(), store_[i].f);
       }
       ell = fit.solve(cfg_.max_iterations);
       if (ell.status != EllipsoidStatus::kOk && ell.status != EllipsoidStatus::kNotConverged)
@@ -357,12 +350,10 @@ class BatchCalibrator {
       std::size_t k = 0;
       for (std::size_t i = 0; i < store_.size(); ++i) {
         const StoredSample<Scalar>& s = store_[i];
-        if (!in_use(s, need_att))
-          continue;
+        if (!in_use(s, need_att)) continue;
         scratch_[k++] = (ell.w * (s.raw() - ell.o)).norm() - s.f;
       }
-      if (k == 0)
-        return ell;
+      if (k == 0) return ell;
       const Scalar med = median(k);
       for (std::size_t i = 0; i < k; ++i)
         scratch_[i] = std::abs(scratch_[i] - med);
@@ -372,18 +363,15 @@ class BatchCalibrator {
       std::size_t count = 0;
       for (std::size_t i = 0; i < store_.size(); ++i) {
         StoredSample<Scalar>& s = store_[i];
-        if (need_att && !s.has_attitude())
-          continue;
+        if (need_att && !s.has_attitude()) continue;
         const bool out = std::abs((ell.w * (s.raw() - ell.o)).norm() - s.f - med) > thr;
-        if (out != s.outlier())
-          changed = true;
+        if (out != s.outlier()) changed = true;
         s.flags = static_cast<std::uint8_t>(out ? (s.flags | kSampleOutlier)
                                                 : (s.flags & ~kSampleOutlier));
         count += out ? 1U : 0U;
       }
       *outliers = count;
-      if (!changed)
-        break;
+      if (!changed) break;
     }
     return ell;
   }
@@ -394,8 +382,7 @@ class BatchCalibrator {
     auto* mid = first + k / 2;
     std::nth_element(first, mid, first + k);
     Scalar m = *mid;
-    if (k % 2 == 0)
-      m = Scalar(0.5) * (m + *std::max_element(first, mid));
+    if (k % 2 == 0) m = Scalar(0.5) * (m + *std::max_element(first, mid));
     return m;
   }
 
@@ -404,15 +391,13 @@ class BatchCalibrator {
     Mat3<Scalar> sq = Mat3<Scalar>::Zero();
     std::size_t n = 0;
     for (std::size_t i = 0; i < store_.size(); ++i) {
-      if (!store_[i].has_attitude())
-        continue;
+      if (!store_[i].has_attitude()) continue;
       const Vec3<Scalar> u = store_[i].r_bn().col(2);
       sum += u;
       sq += u * u.transpose();
       ++n;
     }
-    if (n == 0)
-      return Scalar(0);
+    if (n == 0) return Scalar(0);
     const Scalar nn = static_cast<Scalar>(n);
     const Mat3<Scalar> cov = sq / nn - (sum / nn) * (sum / nn).transpose();
     return std::sqrt(std::max(cov.trace(), Scalar(0)));
@@ -422,8 +407,7 @@ class BatchCalibrator {
     Scalar sse{0};
     std::size_t n = 0;
     for (std::size_t i = 0; i < store_.size(); ++i) {
-      if (store_[i].outlier())
-        continue;
+      if (store_[i].outlier()) continue;
       const Scalar r = (w * (store_[i].raw() - o)).norm() - store_[i].f;
       sse += r * r;
       ++n;
@@ -442,8 +426,7 @@ class BatchCalibrator {
       std::size_t n = 0;
       for (std::size_t i = 0; i < store_.size(); ++i) {
         const StoredSample<Scalar>& s = store_[i];
-        if (!detail::usable(s))
-          continue;
+        if (!detail::usable(s)) continue;
         const Vec3<Scalar> e =
             s.r_bn().transpose() * (rmt * (res->model.w * (s.raw() - res->model.o))) - s.f * dir;
         sse += e.cwiseProduct(e);

@@ -74,14 +74,11 @@ Scalar scaled_rcond(const Mat<Scalar, N, N>& a, Vec<Scalar, N>* weakest = nullpt
   }
   const Mat<Scalar, N, N> s = d.asDiagonal() * a * d.asDiagonal();
   const Eigen::SelfAdjointEigenSolver<Mat<Scalar, N, N>> es(s);
-  if (es.info() != Eigen::Success)
-    return Scalar(0);
+  if (es.info() != Eigen::Success) return Scalar(0);
   const Scalar lmax = es.eigenvalues()(N - 1);
   const Scalar lmin = es.eigenvalues()(0);
-  if (weakest != nullptr)
-    *weakest = es.eigenvectors().col(0);
-  if (!(lmax > Scalar(0)))
-    return Scalar(0);
+  if (weakest != nullptr) *weakest = es.eigenvectors().col(0);
+  if (!(lmax > Scalar(0))) return Scalar(0);
   return lmin > Scalar(0) ? lmin / lmax : Scalar(0);
 }
 
@@ -143,8 +140,7 @@ class EllipsoidFit {
   // Adds one reading m [nT] with its reference field f [nT]. Refuses (returns false) non-finite
   // input or a non-positive field; the accumulator is then unchanged.
   bool add(const Vec3<Scalar>& m, Scalar f) noexcept {
-    if (!m.allFinite() || !std::isfinite(f) || !(f > Scalar(0)))
-      return false;
+    if (!m.allFinite() || !std::isfinite(f) || !(f > Scalar(0))) return false;
     if (!has_norm_) {
       norm_.centre = m;
       norm_.scale = f;
@@ -162,8 +158,7 @@ class EllipsoidFit {
 
   EllipsoidSolution<Scalar> solve(int max_iterations = 50) const noexcept {
     EllipsoidSolution<Scalar> out;
-    if (n_ < kMinSamples)
-      return out;
+    if (n_ < kMinSamples) return out;
     const Accumulator s = s_.template selfadjointView<Eigen::Upper>();
     // (1) Homogeneous quadric: smallest eigenvector of the 10x10 scatter block.
     const Mat<Scalar, kCoeffs, kCoeffs> m = s.template topLeftCorner<kCoeffs, kCoeffs>();
@@ -180,12 +175,10 @@ class EllipsoidFit {
     }
     out.status = EllipsoidStatus::kNotAnEllipsoid;
     const Eigen::LLT<Mat3<Scalar>> llt(g);
-    if (llt.info() != Eigen::Success)
-      return out;
+    if (llt.info() != Eigen::Success) return out;
     Vec3<Scalar> u = Scalar(-0.5) * llt.solve(Vec3<Scalar>(q.template segment<3>(6)));
     const Scalar r2 = u.dot(g * u) - q(9);
-    if (!(r2 > Scalar(0)))
-      return out;
+    if (!(r2 > Scalar(0))) return out;
     const Scalar mean_f2 = s(9, 10) / s(9, 9);
     g *= mean_f2 / r2;
 
@@ -203,11 +196,9 @@ class EllipsoidFit {
       h = d.transpose() * s * d;
       const Vec<Scalar, kParams> grad = d.transpose() * (s * th);
       const Eigen::LDLT<Mat<Scalar, kParams, kParams>> ldlt(h);
-      if (ldlt.info() != Eigen::Success)
-        break;
+      if (ldlt.info() != Eigen::Success) break;
       Vec<Scalar, kParams> step = -ldlt.solve(grad);
-      if (!step.allFinite())
-        break;
+      if (!step.allFinite()) break;
       // Backtracking keeps the cost monotone when the start is far off.
       Scalar new_cost = algebraic_cost(s, p + step);
       int halvings = 0;
@@ -323,12 +314,10 @@ EllipsoidSolution<Scalar> refine_ellipsoid_geometric(const SampleStore<Scalar, C
     count = 0;
     for (std::size_t i = 0; i < store.size(); ++i) {
       const StoredSample<Scalar>& smp = store[i];
-      if (smp.outlier())
-        continue;
+      if (smp.outlier()) continue;
       const Vec3<Scalar> h = w * (norm.to_unit(smp.raw()) - u);
       const Scalar hn = h.norm();
-      if (!(hn > Scalar(0)))
-        continue;
+      if (!(hn > Scalar(0))) continue;
       const Scalar r = hn - smp.f / norm.scale;
       const Vec3<Scalar> v = w.transpose() * (h / hn);
       Vec<Scalar, kP> j;
@@ -347,8 +336,7 @@ EllipsoidSolution<Scalar> refine_ellipsoid_geometric(const SampleStore<Scalar, C
     n = n.template selfadjointView<Eigen::Upper>();
     const Eigen::LDLT<Mat<Scalar, kP, kP>> ldlt(n);
     const Vec<Scalar, kP> step = -ldlt.solve(g);
-    if (ldlt.info() != Eigen::Success || !step.allFinite())
-      break;
+    if (ldlt.info() != Eigen::Success || !step.allFinite()) break;
     for (int k = 0; k < 6; ++k)
       a(kAr[k], kAc[k]) += step(k);
     u += step.template tail<3>();

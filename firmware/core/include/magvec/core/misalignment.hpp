@@ -125,8 +125,7 @@ bool rm_linear_start(const SampleStore<Scalar, Capacity>& store, const Mat3<Scal
   Vec<Scalar, 9> sum = Vec<Scalar, 9>::Zero();
   std::size_t n = 0;
   for (std::size_t i = 0; i < store.size(); ++i) {
-    if (!usable(store[i]))
-      continue;
+    if (!usable(store[i])) continue;
     const Vec3<Scalar> u = store[i].r_bn().col(2);
     const Vec3<Scalar> h = unit_field(store[i], w, o);
     Vec<Scalar, 9> a;
@@ -136,24 +135,19 @@ bool rm_linear_start(const SampleStore<Scalar, Capacity>& store, const Mat3<Scal
     sum += a;
     ++n;
   }
-  if (n < 9)
-    return false;
+  if (n < 9) return false;
   c = c.template selfadjointView<Eigen::Upper>();
   c -= sum * sum.transpose() / static_cast<Scalar>(n);
   const Eigen::SelfAdjointEigenSolver<Mat<Scalar, 9, 9>> es(c);
-  if (es.info() != Eigen::Success)
-    return false;
-  if (!(es.eigenvalues()(0) < Scalar(1e-2) * es.eigenvalues()(1)))
-    return false;
+  if (es.info() != Eigen::Success) return false;
+  if (!(es.eigenvalues()(0) < Scalar(1e-2) * es.eigenvalues()(1))) return false;
   Mat3<Scalar> x;
   for (int r = 0; r < 3; ++r)
     x.row(r) = es.eigenvectors().col(0).template segment<3>(3 * r).transpose();
-  if (x.determinant() < Scalar(0))
-    x = -x;
+  if (x.determinant() < Scalar(0)) x = -x;
   const Eigen::JacobiSVD<Mat3<Scalar>> svd(x, Eigen::ComputeFullU | Eigen::ComputeFullV);
   Mat3<Scalar> rot = svd.matrixU() * svd.matrixV().transpose();
-  if (rot.determinant() < Scalar(0))
-    return false;
+  if (rot.determinant() < Scalar(0)) return false;
   const LiEuler<Scalar> e = li_from_r_bn<Scalar>(Mat3<Scalar>(rot.transpose()));
   *ang = Vec3<Scalar>(e.alpha, e.beta, e.gamma);
   return ang->allFinite();
@@ -209,10 +203,8 @@ MisalignmentSolution<Scalar> plane_compression(
   MisalignmentSolution<Scalar> out;
   out.heading_fixed = opt.fix_heading;
   Vec3<Scalar> ang = Vec3<Scalar>::Zero();
-  if (!detail::rm_linear_start(store, w, o, &ang))
-    ang.setZero();
-  if (opt.fix_heading)
-    ang(kRmAlpha) = opt.fixed_heading_rad;
+  if (!detail::rm_linear_start(store, w, o, &ang)) ang.setZero();
+  if (opt.fix_heading) ang(kRmAlpha) = opt.fixed_heading_rad;
   const Scalar tol = detail::default_tolerance<Scalar>();
   Mat3<Scalar> nmat = Mat3<Scalar>::Zero();
   Scalar cost{0};
@@ -228,8 +220,7 @@ MisalignmentSolution<Scalar> plane_compression(
     n = 0;
     for (std::size_t i = 0; i < store.size(); ++i) {
       const StoredSample<Scalar>& s = store[i];
-      if (!detail::usable(s))
-        continue;
+      if (!detail::usable(s)) continue;
       const Vec3<Scalar> u = s.r_bn().col(2);  // Up in body components
       const Vec3<Scalar> h = detail::unit_field(s, w, o);
       const Scalar f = u.dot(rm.transpose() * h);
@@ -243,8 +234,7 @@ MisalignmentSolution<Scalar> plane_compression(
       sff += f * f;
       ++n;
     }
-    if (n < 4)
-      return out;
+    if (n < 4) return out;
     const Scalar nn = static_cast<Scalar>(n);
     nmat = Mat3<Scalar>(sjj.template selfadjointView<Eigen::Upper>()) - sj * sj.transpose() / nn;
     Vec3<Scalar> g = sfj - sf * sj / nn;
@@ -258,11 +248,9 @@ MisalignmentSolution<Scalar> plane_compression(
     }
     const Eigen::LDLT<Mat3<Scalar>> ldlt(a);
     const Vec3<Scalar> step = -ldlt.solve(g);
-    if (ldlt.info() != Eigen::Success || !step.allFinite())
-      break;
+    if (ldlt.info() != Eigen::Success || !step.allFinite()) break;
     // A direction the data cannot see must not wander: stop on a degenerate system.
-    if (step.norm() > Scalar(1))
-      break;
+    if (step.norm() > Scalar(1)) break;
     ang += step;
     if (step.template lpNorm<Eigen::Infinity>() < tol) {
       converged = true;
@@ -281,8 +269,7 @@ MisalignmentSolution<Scalar> plane_compression(
   const Mat3<Scalar> rm = li_rm(out.rm_rad);
   Vec3<Scalar> hsum = Vec3<Scalar>::Zero();
   for (std::size_t i = 0; i < store.size(); ++i) {
-    if (!detail::usable(store[i]))
-      continue;
+    if (!detail::usable(store[i])) continue;
     hsum += store[i].r_bn().transpose() * (rm.transpose() * (w * (store[i].raw() - o)));
   }
   out.has_h_n = n > 0;
@@ -300,10 +287,8 @@ MisalignmentSolution<Scalar> joint_rm_hn(const SampleStore<Scalar, Capacity>& st
   MisalignmentSolution<Scalar> out;
   out.heading_fixed = opt.fix_heading;
   Vec3<Scalar> ang = Vec3<Scalar>::Zero();
-  if (!detail::rm_linear_start(store, w, o, &ang))
-    ang.setZero();
-  if (opt.fix_heading)
-    ang(kRmAlpha) = opt.fixed_heading_rad;
+  if (!detail::rm_linear_start(store, w, o, &ang)) ang.setZero();
+  if (opt.fix_heading) ang(kRmAlpha) = opt.fixed_heading_rad;
   // Start d at the mean of the rotated samples.
   Vec3<Scalar> dvec = Vec3<Scalar>::Zero();
   Scalar fsum{0};
@@ -311,15 +296,13 @@ MisalignmentSolution<Scalar> joint_rm_hn(const SampleStore<Scalar, Capacity>& st
   {
     const Mat3<Scalar> rm = li_rm(ang);
     for (std::size_t i = 0; i < store.size(); ++i) {
-      if (!detail::usable(store[i]))
-        continue;
+      if (!detail::usable(store[i])) continue;
       dvec += store[i].r_bn().transpose() * (rm.transpose() * detail::unit_field(store[i], w, o));
       fsum += store[i].f;
       ++n;
     }
   }
-  if (n < 4)
-    return out;
+  if (n < 4) return out;
   const Scalar nn = static_cast<Scalar>(n);
   dvec /= nn;
   const Scalar fmean = fsum / nn;
@@ -336,8 +319,7 @@ MisalignmentSolution<Scalar> joint_rm_hn(const SampleStore<Scalar, Capacity>& st
     sse = Scalar(0);
     for (std::size_t i = 0; i < store.size(); ++i) {
       const StoredSample<Scalar>& s = store[i];
-      if (!detail::usable(s))
-        continue;
+      if (!detail::usable(s)) continue;
       const Mat3<Scalar> rt = s.r_bn().transpose();
       const Vec3<Scalar> h = detail::unit_field(s, w, o);
       const Vec3<Scalar> r = rt * (rm.transpose() * h) - dvec;
@@ -359,10 +341,8 @@ MisalignmentSolution<Scalar> joint_rm_hn(const SampleStore<Scalar, Capacity>& st
     }
     const Eigen::LDLT<Mat<Scalar, kP, kP>> ldlt(a);
     const Vec<Scalar, kP> step = -ldlt.solve(g);
-    if (ldlt.info() != Eigen::Success || !step.allFinite())
-      break;
-    if (step.template head<3>().norm() > Scalar(1))
-      break;
+    if (ldlt.info() != Eigen::Success || !step.allFinite()) break;
+    if (step.template head<3>().norm() > Scalar(1)) break;
     ang += step.template head<3>();
     dvec += step.template tail<3>();
     if (step.template lpNorm<Eigen::Infinity>() < tol) {

@@ -118,8 +118,7 @@ class OneStepFit {
       VecP g;
       pass(store, norm, ks, o_rad, u, rm, d, t1, t2, sm, sa2, opt.attitude_model, &n, &g, &chi2,
            &fsum, &count);
-      if (count < 5)
-        return out;
+      if (count < 5) return out;
       if (!(chi2 <= prev_chi2 * (Scalar(1) + Scalar(1e-6))) && it > 0 && last_step.norm() > tol) {
         // The last step overshot: go back half of it and re-evaluate.
         last_step *= Scalar(-0.5);
@@ -136,18 +135,15 @@ class OneStepFit {
       }
       const Eigen::LDLT<MatP> ldlt(a);
       VecP step = -ldlt.solve(g);
-      if (ldlt.info() != Eigen::Success || !step.allFinite())
-        break;
-      if (step.template segment<3>(kIdxRm).norm() > Scalar(1))
-        break;  // degenerate direction
+      if (ldlt.info() != Eigen::Success || !step.allFinite()) break;
+      if (step.template segment<3>(kIdxRm).norm() > Scalar(1)) break;  // degenerate direction
       apply(step, &ks, &o_rad, &u, &rm, &d, t1, t2);
       last_step = step;
       // Converged when every change is tiny in absolute terms or against its own uncertainty.
       bool small = true;
       for (int k = 0; k < kParams; ++k) {
         const Scalar sig = a(k, k) > Scalar(0) ? Scalar(1) / std::sqrt(a(k, k)) : Scalar(0);
-        if (std::abs(step(k)) > tol && std::abs(step(k)) > Scalar(1e-4) * sig)
-          small = false;
+        if (std::abs(step(k)) > tol && std::abs(step(k)) > Scalar(1e-4) * sig) small = false;
       }
       if (small) {
         converged = true;
@@ -180,8 +176,7 @@ class OneStepFit {
     const Scalar factor = opt.scale_sigma_by_residual ? out.chi2_per_dof : Scalar(1);
     const Eigen::LDLT<MatP> ldlt(a);
     MatP cov = ldlt.solve(MatP::Identity()) * factor;
-    if (opt.fix_heading)
-      cov(kIdxRm + kRmAlpha, kIdxRm + kRmAlpha) = Scalar(0);
+    if (opt.fix_heading) cov(kIdxRm + kRmAlpha, kIdxRm + kRmAlpha) = Scalar(0);
     VecP sd;
     for (int k = 0; k < kParams; ++k)
       sd(k) = std::sqrt(std::max(cov(k, k), Scalar(0)));
@@ -239,8 +234,7 @@ class OneStepFit {
     *count = 0;
     for (std::size_t i = 0; i < store.size(); ++i) {
       const StoredSample<Scalar>& s = store[i];
-      if (!detail::usable(s))
-        continue;
+      if (!detail::usable(s)) continue;
       const Mat3<Scalar> r = s.r_bn();
       const Mat3<Scalar> mt = r.transpose() * rmt;  // R^T Rm^T
       const Mat3<Scalar> p = mt * w;
@@ -274,8 +268,7 @@ class OneStepFit {
         cov += sa2 * (hn.squaredNorm() * Mat3<Scalar>::Identity() - hn * hn.transpose());
       }
       const Eigen::LLT<Mat3<Scalar>> llt(cov);
-      if (llt.info() != Eigen::Success)
-        continue;
+      if (llt.info() != Eigen::Success) continue;
       const Mat<Scalar, 3, kParams> jw = llt.matrixL().solve(j);
       const Vec3<Scalar> rw = llt.matrixL().solve(res);
       n->template selfadjointView<Eigen::Upper>().rankUpdate(jw.transpose());

@@ -60,8 +60,7 @@ class SampleStore {
 
   // Stores a finite sample; returns false when full. r_bn may be null (no attitude).
   bool push(const Vec3<Scalar>& m, Scalar f, const Mat3<Scalar>* r_bn) noexcept {
-    if (size_ == Capacity)
-      return false;
+    if (size_ == Capacity) return false;
     StoredSample<Scalar>& s = samples_[size_];
     s.m = {m(0), m(1), m(2)};
     s.f = f;

@@ -198,8 +198,7 @@ class QuadricAccumulator {
 
   // W, b in the accumulated (centred) coordinates. False if the quadric is not an ellipsoid.
   bool solve(Mat3<Scalar>* w, Vec3<Scalar>* b) const noexcept {
-    if (n_ < 10)
-      return false;
+    if (n_ < 10) return false;
     const Mat<Scalar, 10, 10> full = s_.template selfadjointView<Eigen::Lower>();
     // theta = t0 + T^T theta' with t0 = e_2 (G22 = 1 - G00 - G11).
     Mat<Scalar, 9, 10> t = Mat<Scalar, 9, 10>::Zero();
@@ -212,27 +211,22 @@ class QuadricAccumulator {
     const Mat<Scalar, 9, 9> a = t * full * t.transpose();
     const Vec<Scalar, 9> rhs = -(t * full.col(2));
     const Eigen::LDLT<Mat<Scalar, 9, 9>> ldlt(a);
-    if (ldlt.info() != Eigen::Success)
-      return false;
+    if (ldlt.info() != Eigen::Success) return false;
     const Vec<Scalar, 9> tp = ldlt.solve(rhs);
-    if (!tp.allFinite())
-      return false;
+    if (!tp.allFinite()) return false;
     Vec<Scalar, 10> theta = t.transpose() * tp;
     theta(2) += 1;
     Mat3<Scalar> g;
     g << theta(0), theta(3), theta(4), theta(3), theta(1), theta(5), theta(4), theta(5), theta(2);
     const Eigen::LLT<Mat3<Scalar>> llt_g(g);
-    if (llt_g.info() != Eigen::Success)
-      return false;
+    if (llt_g.info() != Eigen::Success) return false;
     const Vec3<Scalar> center = llt_g.solve(theta.template segment<3>(6));
     // phi^T theta = (p - b)^T G (p - b) - k with k = b^T G b - theta_9.
     const Scalar k = center.dot(g * center) - theta(9);
     const Scalar z_mean = z_sum_ / static_cast<Scalar>(n_);
-    if (!(k > 0 && z_mean > 0))
-      return false;
+    if (!(k > 0 && z_mean > 0)) return false;
     const Eigen::LLT<Mat3<Scalar>> llt(g * (z_mean / k));
-    if (llt.info() != Eigen::Success)
-      return false;
+    if (llt.info() != Eigen::Success) return false;
     *w = llt.matrixU();
     *b = center;
     return w->allFinite() && b->allFinite();
@@ -286,8 +280,7 @@ class ScalarEkf {
     // last state estimate is kept so model() still returns the best known calibration.
     u_.setIdentity();
     d_.setOnes();
-    if (!use_fit_ && scale_ > 0)
-      start_given();
+    if (!use_fit_ && scale_ > 0) start_given();
   }
 
   EkfStatus update(const Vec3<Scalar>& m_nT) noexcept {
@@ -323,8 +316,7 @@ class ScalarEkf {
       buf_m_.col(n_buf_) = m;
       buf_f_(n_buf_) = fn;
       ++n_buf_;
-      if (n_buf_ < cfg_.init_samples)
-        return EkfStatus::kCollecting;
+      if (n_buf_ < cfg_.init_samples) return EkfStatus::kCollecting;
       if (solve_initial_fit()) {
         initialised_ = true;
         return EkfStatus::kInitialised;
@@ -386,8 +378,7 @@ class ScalarEkf {
     const Vec3<Scalar> v = m_nT / s - x_.template tail<3>();
     const Vec3<Scalar> y = c_inv() * v;
     const Scalar ny = y.norm();
-    if (!(ny > 0))
-      return std::numeric_limits<Scalar>::infinity();
+    if (!(ny > 0)) return std::numeric_limits<Scalar>::infinity();
     const StateVec grad = jacobian(y, v, Scalar(0)) / (Scalar(2) * ny);  // d|y|/dx
     const StateVec f = u_.transpose() * grad;
     return std::sqrt(f.dot(d_.cwiseProduct(f))) * s;
@@ -524,8 +515,7 @@ class ScalarEkf {
     const Scalar s2 = scale_or_one() * scale_or_one();
     for (int k = 0; k < kN; ++k) {
       const Scalar qk = k >= kEkfBx ? cfg_.q(k) / s2 : cfg_.q(k);
-      if (qk > 0)
-        add_diagonal_noise(k, qk);
+      if (qk > 0) add_diagonal_noise(k, qk);
     }
     const StateVec f0 = u_.transpose() * l0.h_row;
     const Scalar s0 = l0.r + f0.dot(d_.cwiseProduct(f0));
@@ -562,8 +552,7 @@ class ScalarEkf {
     }
     if (!x_.allFinite() || !d_.allFinite() || !u_.allFinite())
       return reinitialise(EkfResetReason::kNonFiniteState);
-    if (!(d_.array() > 0).all())
-      return reinitialise(EkfResetReason::kCovarianceNotPositive);
+    if (!(d_.array() > 0).all()) return reinitialise(EkfResetReason::kCovarianceNotPositive);
     if (!(std::abs(c_inv().determinant()) > std::numeric_limits<Scalar>::epsilon())) {
       return reinitialise(EkfResetReason::kSingularModel);
     }
@@ -574,8 +563,7 @@ class ScalarEkf {
 
   EkfStatus end_of_window_check(EkfStatus status) noexcept {
     ++window_n_;
-    if (window_n_ < cfg_.nis_window)
-      return status;
+    if (window_n_ < cfg_.nis_window) return status;
     const int accepted = window_n_ - window_gated_;
     const Scalar gated_fraction =
         static_cast<Scalar>(window_gated_) / static_cast<Scalar>(window_n_);
@@ -584,22 +572,18 @@ class ScalarEkf {
     window_n_ = 0;
     window_gated_ = 0;
     window_nis_sum_ = 0;
-    if (!cfg_.divergence_detection)
-      return status;
+    if (!cfg_.divergence_detection) return status;
     if (gated_fraction > cfg_.gated_fraction_limit)
       return reinitialise(EkfResetReason::kTooManyGated);
-    if (mean_nis > cfg_.nis_mean_limit)
-      return reinitialise(EkfResetReason::kNisTooHigh);
+    if (mean_nis > cfg_.nis_mean_limit) return reinitialise(EkfResetReason::kNisTooHigh);
     return status;
   }
 
   EkfStatus reinitialise(EkfResetReason reason) noexcept {
     last_reset_ = reason;
     ++counters_.reinitialisations;
-    if (cfg_.reinit_from_fit)
-      use_fit_ = true;
-    if (!x_.allFinite())
-      x_ = flatten_state(cfg_.w0, cfg_.b0_nT / scale_or_one());
+    if (cfg_.reinit_from_fit) use_fit_ = true;
+    if (!x_.allFinite()) x_ = flatten_state(cfg_.w0, cfg_.b0_nT / scale_or_one());
     restart();
     return EkfStatus::kReinitialised;
   }
@@ -609,13 +593,11 @@ class ScalarEkf {
     scalar_ekf_detail::QuadricAccumulator<Scalar> acc;
     acc.clear();
     for (int i = 0; i < n_buf_; ++i) {
-      if (used_(i) > 0)
-        acc.add(buf_m_.col(i) - center, buf_f_(i) * buf_f_(i));
+      if (used_(i) > 0) acc.add(buf_m_.col(i) - center, buf_f_(i) * buf_f_(i));
     }
     Mat3<Scalar> w;
     Vec3<Scalar> b;
-    if (!acc.solve(&w, &b))
-      return false;
+    if (!acc.solve(&w, &b)) return false;
     x_ = flatten_state(w, b + center);
     return true;
   }
@@ -627,8 +609,7 @@ class ScalarEkf {
     grad->setZero();
     int n = 0;
     for (int i = 0; i < n_buf_; ++i) {
-      if (!(used_(i) > 0))
-        continue;
+      if (!(used_(i) > 0)) continue;
       const Linearisation l = linearise(buf_m_.col(i), buf_f_(i));
       const Scalar res = buf_f_(i) * buf_f_(i) - l.h;
       info->template selfadjointView<Eigen::Lower>().rankUpdate(l.h_row, Scalar(1) / l.r);
@@ -650,8 +631,7 @@ class ScalarEkf {
   int screen(Scalar threshold) noexcept {
     int dropped = 0;
     for (int i = 0; i < n_buf_; ++i) {
-      if (!(used_(i) > 0))
-        continue;
+      if (!(used_(i) > 0)) continue;
       const Linearisation l = linearise(buf_m_.col(i), buf_f_(i));
       const Scalar res = buf_f_(i) * buf_f_(i) - l.h;
       if (!(res * res <= threshold * l.r)) {
@@ -666,13 +646,11 @@ class ScalarEkf {
     Vec<Scalar, kInitCapacity> e;
     int n = 0;
     for (int i = 0; i < n_buf_; ++i) {
-      if (!(used_(i) > 0))
-        continue;
+      if (!(used_(i) > 0)) continue;
       const Linearisation l = linearise(buf_m_.col(i), buf_f_(i));
       e(n++) = std::abs(buf_f_(i) * buf_f_(i) - l.h) / std::sqrt(l.r);
     }
-    if (n == 0)
-      return Scalar(0);
+    if (n == 0) return Scalar(0);
     Scalar* first = e.data();
     std::nth_element(first, first + n / 2, first + n);
     return e(n / 2);
@@ -682,14 +660,11 @@ class ScalarEkf {
     for (int it = 0; it < iterations; ++it) {
       StateMat info;
       StateVec grad;
-      if (normal_equations(&info, &grad) < 16)
-        return false;
+      if (normal_equations(&info, &grad) < 16) return false;
       const Eigen::LDLT<StateMat> ldlt(info);
-      if (ldlt.info() != Eigen::Success)
-        return false;
+      if (ldlt.info() != Eigen::Success) return false;
       const StateVec step = ldlt.solve(grad);
-      if (!step.allFinite())
-        return false;
+      if (!step.allFinite()) return false;
       x_ += step;
     }
     return x_.allFinite();
@@ -711,15 +686,13 @@ class ScalarEkf {
     if (ok) {
       const Scalar robust = Scalar(5) * Scalar(1.4826) * median_abs_normalised_residual();
       dropped = screen(std::max(gate, robust * robust));
-      if (dropped > 0)
-        ok = algebraic_fit(center);
+      if (dropped > 0) ok = algebraic_fit(center);
     }
     ok = ok && gauss_newton(cfg_.init_gauss_newton_iterations);
     if (ok) {
       const int late = screen(gate);
       dropped += late;
-      if (late > 0)
-        ok = gauss_newton(2);
+      if (late > 0) ok = gauss_newton(2);
     }
     StateMat info;
     StateVec grad;
@@ -769,8 +742,7 @@ class ScalarEkf {
       Scalar dj = p(j, j);
       for (int k = j + 1; k < kN; ++k)
         dj -= d(k) * u(j, k) * u(j, k);
-      if (!(dj > 0))
-        return false;
+      if (!(dj > 0)) return false;
       d(j) = dj;
       for (int i = 0; i < j; ++i) {
         Scalar a = p(i, j);

@@ -72,14 +72,11 @@ class SineSweep {
   SweepFit<Scalar> fit() const noexcept {
     SweepFit<Scalar> out;
     out.samples = count_;
-    if (count_ < kMinSamples)
-      return out;
+    if (count_ < kMinSamples) return out;
     const Eigen::LDLT<Mat3<Scalar>> ldlt(n_);
-    if (ldlt.info() != Eigen::Success || !ldlt.isPositive())
-      return out;
+    if (ldlt.info() != Eigen::Success || !ldlt.isPositive()) return out;
     const Mat3<Scalar> coef = ldlt.solve(rhs_);  // column k: [a, b, D] of axis k
-    if (!coef.allFinite() || ldlt.rcond() < Scalar(1e-6))
-      return out;
+    if (!coef.allFinite() || ldlt.rcond() < Scalar(1e-6)) return out;
     for (int k = 0; k < 3; ++k) {
       const Scalar a = coef(0, k), b = coef(1, k);
       out.amplitude(k) = std::hypot(a, b);

@@ -95,24 +95,6 @@ class ScoringSink final : public hal::RecordSink {
   Session* session_{nullptr};
 };
 
-const char* state_name(core::CalState s) {
-  switch (s) {
-    case core::CalState::kIdle:
-      return "idle";
-    case core::CalState::kCollecting:
-      return "collecting";
-    case core::CalState::kSolving:
-      return "solving";
-    case core::CalState::kValidating:
-      return "validating";
-    case core::CalState::kApplied:
-      return "applied";
-    case core::CalState::kFailed:
-      return "failed";
-  }
-  return "unknown";
-}
-
 void write_cal(const std::string& path, const LiCal& cal, double validation_rms_nT,
                const DemoOptions& o) {
   const core::BatchResult<double>& r = cal.last_result();
@@ -199,7 +181,8 @@ void run(const DemoOptions& o) {
             << "  noise: magnetometer " << o.noise_nT << " nT/axis, INS " << o.ins_noise_deg
             << " deg/angle; faults: ADC CRC " << o.crc_rate << ", dropouts " << o.dropout_rate
             << ", INS corrupt frames " << o.ins_corrupt_rate << "\n\n";
-  std::cout << "Calibration: state " << state_name(loop.state()) << ", cal_id " << loop.cal_id();
+  std::cout << "Calibration: state " << core::cal_state_name(loop.state()) << ", cal_id "
+            << loop.cal_id();
   if (applied_at > 0)
     std::cout << ", applied at t = " << fixed(static_cast<double>(applied_at) / sc.rate_hz, 2)
               << " s";
@@ -209,7 +192,7 @@ void run(const DemoOptions& o) {
             << fixed(loop.last_validation_rms_nT(), 3) << " nT\n";
   if (loop.state() != core::CalState::kApplied || !res.ok()) {
     throw std::runtime_error("the in-loop calibration did not apply (state " +
-                             std::string(state_name(loop.state())) + ", verdict " +
+                             std::string(core::cal_state_name(loop.state())) + ", verdict " +
                              core::verdict_name(res.verdict) + ")");
   }
   write_cal(cal_path, *cal, loop.last_validation_rms_nT(), o);

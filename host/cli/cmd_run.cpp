@@ -44,24 +44,6 @@ struct RunOptions {
 using LiCal = core::BatchLiCalibrator<double, 512>;
 using EkfCal = core::EkfCalibrator<double, 256>;
 
-const char* state_name(core::CalState s) {
-  switch (s) {
-    case core::CalState::kIdle:
-      return "idle";
-    case core::CalState::kCollecting:
-      return "collecting";
-    case core::CalState::kSolving:
-      return "solving";
-    case core::CalState::kValidating:
-      return "validating";
-    case core::CalState::kApplied:
-      return "applied";
-    case core::CalState::kFailed:
-      return "failed";
-  }
-  return "unknown";
-}
-
 const char* failure_name(core::CalFailure f) {
   switch (f) {
     case core::CalFailure::kNone:
@@ -242,8 +224,8 @@ void run_session(const RunOptions& o, drivers::sim::Simulator& sim,
             << h.calibrations_applied << ", failed " << h.calibrations_failed << ", final cal_id "
             << session->loop().cal_id() << "\n";
   const auto& lp = session->loop();
-  std::cout << "  calibration: state " << state_name(lp.state()) << ", progress " << lp.progress()
-            << ", cal_id " << lp.cal_id();
+  std::cout << "  calibration: state " << core::cal_state_name(lp.state()) << ", progress "
+            << lp.progress() << ", cal_id " << lp.cal_id();
   if (lp.state() == core::CalState::kFailed) {
     std::cout << ", failure " << failure_name(lp.failure());
     if (lp.failure() == core::CalFailure::kSolverRejected)

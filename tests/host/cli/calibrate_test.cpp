@@ -2,8 +2,10 @@
 // for the Li (one-step), Ge (EKF) and sine setups against the truth, the refusal verdicts with
 // their exit status, and bad input.
 #include <gtest/gtest.h>
+
 #include <stdlib.h>
 #include <sys/wait.h>
+#include "support/process.hpp"
 
 #include <cmath>
 #include <cstdio>
@@ -26,22 +28,10 @@ namespace fs = std::filesystem;
 using magvec::core::Mat3;
 using magvec::core::Vec3;
 
-struct Result {
-  int status;
-  std::string output;  // stdout + stderr
-};
+using Result = magvec::test::CommandResult;
 
 Result run(const std::string& args) {
-  const std::string cmd = std::string(MAGVEC_CLI) + " " + args + " 2>&1";
-  FILE* p = ::popen(cmd.c_str(), "r");
-  if (p == nullptr) return {-1, ""};
-  std::string out;
-  char buf[4096];
-  std::size_t n = 0;
-  while ((n = std::fread(buf, 1, sizeof(buf), p)) > 0)
-    out.append(buf, n);
-  const int st = ::pclose(p);
-  return {WIFEXITED(st) ? WEXITSTATUS(st) : -1, out};
+  return magvec::test::run_shell(std::string(MAGVEC_CLI) + " " + args);
 }
 
 // Parses "<prefix> ... RMS <a> nT raw -> <b> nT compensated" from magvec apply.

@@ -1,8 +1,10 @@
 // End-to-end tests of the magvec CLI: --version, simulate (CSV + truth header, determinism, bad
 // option values -> non-zero exit) and the temporary demo.
 #include <gtest/gtest.h>
+
 #include <stdlib.h>
 #include <sys/wait.h>
+#include "support/process.hpp"
 
 #include <cmath>
 #include <cstdio>
@@ -21,22 +23,10 @@ namespace {
 
 namespace fs = std::filesystem;
 
-struct Result {
-  int status;
-  std::string output;  // stdout + stderr
-};
+using Result = magvec::test::CommandResult;
 
 Result run(const std::string& args) {
-  const std::string cmd = std::string(MAGVEC_CLI) + " " + args + " 2>&1";
-  FILE* p = ::popen(cmd.c_str(), "r");
-  if (p == nullptr) return {-1, ""};
-  std::string out;
-  char buf[4096];
-  std::size_t n = 0;
-  while ((n = std::fread(buf, 1, sizeof(buf), p)) > 0)
-    out.append(buf, n);
-  const int st = ::pclose(p);
-  return {WIFEXITED(st) ? WEXITSTATUS(st) : -1, out};
+  return magvec::test::run_shell(std::string(MAGVEC_CLI) + " " + args);
 }
 
 std::string slurp(const fs::path& p) {

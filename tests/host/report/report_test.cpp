@@ -3,9 +3,11 @@
 // CLI: every figure a valid, non-trivial PNG that index.html references, clear errors for bad input
 // and missing python3/matplotlib, and a headless Chromium screenshot of the page that is not blank.
 #include <gtest/gtest.h>
+
 #include <stdlib.h>
 #include <sys/wait.h>
 #include <unistd.h>
+#include "support/process.hpp"
 
 #include <cmath>
 #include <cstdio>
@@ -29,21 +31,10 @@ namespace fs = std::filesystem;
 namespace rp = magvec::host::report;
 using magvec::core::Vec3;
 
-struct Result {
-  int status;
-  std::string output;  // stdout + stderr
-};
+using Result = magvec::test::CommandResult;
 
 Result shell(const std::string& cmd) {
-  FILE* p = ::popen((cmd + " 2>&1").c_str(), "r");
-  if (p == nullptr) return {-1, ""};
-  std::string out;
-  char buf[4096];
-  std::size_t n = 0;
-  while ((n = std::fread(buf, 1, sizeof(buf), p)) > 0)
-    out.append(buf, n);
-  const int st = ::pclose(p);
-  return {WIFEXITED(st) ? WEXITSTATUS(st) : -1, out};
+  return magvec::test::run_shell(cmd);
 }
 
 Result magvec(const std::string& args, const std::string& env = "") {

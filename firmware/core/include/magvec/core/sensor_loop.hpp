@@ -37,6 +37,24 @@ enum OutputFlag : std::uint32_t {
 
 enum class CalState : std::uint8_t { kIdle, kCollecting, kSolving, kValidating, kApplied, kFailed };
 
+constexpr const char* cal_state_name(CalState s) noexcept {
+  switch (s) {
+    case CalState::kIdle:
+      return "idle";
+    case CalState::kCollecting:
+      return "collecting";
+    case CalState::kSolving:
+      return "solving";
+    case CalState::kValidating:
+      return "validating";
+    case CalState::kApplied:
+      return "applied";
+    case CalState::kFailed:
+      return "failed";
+  }
+  return "unknown";
+}
+
 enum class CalFailure : std::uint8_t {
   kNone,
   kSolverRejected,    // the calibrator refused (see solver_code)

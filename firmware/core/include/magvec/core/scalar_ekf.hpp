@@ -425,9 +425,9 @@ class ScalarEkf {
   }
 
   struct Linearisation {
-    StateVec h_row;
-    Scalar h;  // predicted measurement
-    Scalar r;  // measurement variance
+    StateVec h_row = StateVec::Zero();
+    Scalar h{0};  // predicted measurement
+    Scalar r{0};  // measurement variance
   };
   // Measurement model at the current state for normalised m and F (fn).
   Linearisation linearise(const Vec3<Scalar>& m, Scalar fn) const noexcept {

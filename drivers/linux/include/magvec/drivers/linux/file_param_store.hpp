@@ -11,9 +11,8 @@
 // path.prev.tmp + fsync + rename); rename path.tmp -> path; fsync the directory; read back and
 // verify. A power cut at any point leaves `path` holding the old or the new valid record (rename is
 // atomic and the data was synced before it).
-// load(): `path` valid -> it (or path.prev if that is newer by sequence, which a correct store
-// never produces); `path` missing -> path.prev if valid, else kNotFound; `path` present but
-// invalid (truncated, flipped bits, wrong magic) -> kCorrupt, deliberately NOT the older
+// load(): `path` valid -> it; `path` missing -> path.prev if valid, else kNotFound; `path` present
+// but invalid (truncated, flipped bits, wrong magic) -> kCorrupt, deliberately NOT the older
 // path.prev: a damaged calibration is reported, never silently replaced by an older one
 // (load_previous() reads path.prev explicitly, e.g. for a revert). last_error() says why.
 // A corrupt `path` is never overwritten: store() first renames it to path.corrupt-N.
@@ -55,13 +54,13 @@ class FileParamStore final : public hal::ParamStore {
                             std::uint32_t& sequence) noexcept;
 
   const std::string& path() const noexcept { return path_; }
-  std::string previous_path() const { return path_ + ".prev"; }
+  const std::string& previous_path() const noexcept { return prev_path_; }
   const OsError& last_error() const noexcept { return last_error_; }
   // Path of the last corrupt file store() moved aside (empty if none).
   const std::string& preserved_corrupt_path() const noexcept { return preserved_corrupt_; }
 
  private:
-  FileParamStore(std::string path, int dir_fd, std::size_t max_blob) noexcept;
+  FileParamStore(std::string path, int dir_fd, std::size_t max_blob);
 
   enum class FileState : std::uint8_t { kValid, kMissing, kInvalid, kIoError };
   struct FileInfo {
@@ -75,9 +74,14 @@ class FileParamStore final : public hal::ParamStore {
   hal::Status copy_out(const FileInfo& info, std::span<std::uint8_t> out, std::size_t& length,
                        std::uint32_t& sequence) noexcept;
   bool write_file_synced(const std::string& file, std::span<const std::uint8_t> bytes) noexcept;
-  bool sync_dir(const char* what) noexcept;
+  bool sync_dir() noexcept;
+  bool preserve_corrupt() noexcept;  // renames path_ to the first unused path.corrupt-N
 
   std::string path_;
+  std::string name_;  // "param file <path>", for messages
+  std::string tmp_path_;
+  std::string prev_path_;
+  std::string prev_tmp_path_;
   int dir_fd_{-1};
   std::size_t max_blob_{0};
   std::vector<std::uint8_t> buffer_;  // one record (header + max_blob), allocated at open

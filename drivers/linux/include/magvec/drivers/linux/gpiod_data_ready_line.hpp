@@ -4,7 +4,7 @@
 // (CLOCK_MONOTONIC since Linux 5.7, CLOCK_REALTIME before; see kernel_event_to_monotonic_us).
 // The kernel queues up to 16 events per line; the v1 uAPI does not report overflow, so lost edges
 // are detected only with both_edges (two consecutive edges of the same direction = at least one
-// lost pair), counted in missed_edges().
+// edge of the other direction lost), counted in missed_edges(), one per repeated direction.
 #pragma once
 
 #include <cstdint>
@@ -44,11 +44,12 @@ class GpiodDataReadyLine final : public hal::DataReadyLine {
   const GpiodConfig& config() const noexcept { return config_; }
 
  private:
-  GpiodDataReadyLine(gpiod_chip* chip, gpiod_line* line, GpiodConfig config) noexcept;
+  GpiodDataReadyLine(gpiod_chip* chip, gpiod_line* line, GpiodConfig config);
 
   gpiod_chip* chip_{nullptr};
   gpiod_line* line_{nullptr};
   GpiodConfig config_;
+  std::string name_;  // "gpiod <chip> line <n>", for messages
   OsError last_error_;
   std::uint32_t events_{0};
   std::uint32_t missed_edges_{0};

@@ -52,10 +52,11 @@ class SocketCanBus final : public hal::CanBus {
   const SocketCanConfig& config() const noexcept { return config_; }
 
  private:
-  SocketCanBus(int fd, SocketCanConfig config) noexcept;
+  SocketCanBus(int fd, SocketCanConfig config);
 
   int fd_{-1};
   SocketCanConfig config_;
+  std::string name_;  // "socketcan <interface>", for messages
   OsError last_error_;
   std::uint32_t error_frames_{0};
   std::uint32_t dropped_frames_{0};

@@ -112,16 +112,16 @@ TEST(Gpiod, FallingEdgeConfigurationReportsOnlyFallingEdges) {
   OsError err;
   auto line = GpiodDataReadyLine::open(c, &err);
   ASSERT_NE(line, nullptr) << err.message;
-  for (int i = 0; i < 3; ++i) {
-    set_pull(true);
-    set_pull(false);
-  }
   hal::EdgeEvent ev;
   for (int i = 0; i < 3; ++i) {
-    ASSERT_EQ(line->wait_edge(ev, 1'000'000), hal::Status::kOk);
+    set_pull(true);
+    EXPECT_EQ(line->wait_edge(ev, 20'000), hal::Status::kTimeout) << "a rising edge was reported";
+    set_pull(false);
+    ASSERT_EQ(line->wait_edge(ev, 1'000'000), hal::Status::kOk) << line->last_error().message;
     EXPECT_EQ(ev.edge, hal::Edge::kFalling);
   }
   EXPECT_EQ(line->wait_edge(ev, 20'000), hal::Status::kTimeout);
+  EXPECT_EQ(line->events(), 3u);
 }
 
 TEST(Gpiod, MissingOrBusyLineGivesAClearError) {

@@ -255,6 +255,34 @@ TEST_F(FileParamStoreTest, CorruptFileIsPreservedNotOverwritten) {
   EXPECT_EQ(load(*s).data, blob(4, 20));
 }
 
+TEST_F(FileParamStoreTest, ConcurrentWritersAreSerialised) {
+  constexpr int kWriters = 3;
+  constexpr int kStores = 10;
+  std::vector<pid_t> children;
+  for (int w = 0; w < kWriters; ++w) {
+    const pid_t pid = ::fork();
+    if (pid == 0) {
+      OsError err;
+      auto s = FileParamStore::open(path_.string(), kMax, &err);
+      if (s == nullptr) ::_exit(1);
+      for (int i = 0; i < kStores; ++i)
+        if (s->store(blob(static_cast<std::uint8_t>(w), 100)) != hal::Status::kOk) ::_exit(2);
+      ::_exit(0);
+    }
+    children.push_back(pid);
+  }
+  for (const pid_t pid : children) {
+    int status = 0;
+    ::waitpid(pid, &status, 0);
+    EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << "writer status " << status;
+  }
+  auto s = open();
+  const Loaded l = load(*s);
+  ASSERT_EQ(l.status, hal::Status::kOk);
+  EXPECT_EQ(l.sequence, static_cast<std::uint32_t>(kWriters * kStores));  // no store lost
+  EXPECT_EQ(load(*s, true).sequence, l.sequence - 1);
+}
+
 TEST(FileParamStoreErrors, BadPathsAndSizesGiveClearErrors) {
   OsError err;
   EXPECT_EQ(FileParamStore::open("/nonexistent-magvec-dir/cal.bin", 64, &err), nullptr);

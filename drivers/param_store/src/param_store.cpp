@@ -6,28 +6,6 @@
 #include "magvec/drivers/crc.hpp"
 
 namespace magvec::drivers {
-namespace {
-
-std::uint32_t le32(const std::uint8_t* p) noexcept {
-  return static_cast<std::uint32_t>(p[0]) | (static_cast<std::uint32_t>(p[1]) << 8) |
-         (static_cast<std::uint32_t>(p[2]) << 16) | (static_cast<std::uint32_t>(p[3]) << 24);
-}
-std::uint16_t le16(const std::uint8_t* p) noexcept {
-  return static_cast<std::uint16_t>(p[0] | (p[1] << 8));
-}
-void put32(std::uint8_t* p, std::uint32_t v) noexcept {
-  for (int i = 0; i < 4; ++i)
-    p[i] = static_cast<std::uint8_t>(v >> (8 * i));
-}
-void put16(std::uint8_t* p, std::uint16_t v) noexcept {
-  p[0] = static_cast<std::uint8_t>(v);
-  p[1] = static_cast<std::uint8_t>(v >> 8);
-}
-bool newer(std::uint32_t a, std::uint32_t b) noexcept {
-  return static_cast<std::int32_t>(a - b) > 0;
-}
-
-}  // namespace
 
 hal::Status FlashParamStore::check_layout() const noexcept {
   const std::size_t sector = flash_.sector_size();
@@ -44,13 +22,10 @@ FlashParamStore::SlotInfo FlashParamStore::inspect(std::size_t slot) const noexc
   std::array<std::uint8_t, kHeaderSize> h{};
   const std::size_t off = slot_offset(slot);
   if (flash_.read(off, h) != hal::Status::kOk) return info;
-  if (le32(h.data()) != kMagic || le16(h.data() + 4) != kVersion ||
-      le16(h.data() + 6) != kHeaderSize) {
-    return info;
-  }
-  const std::uint32_t length = le32(h.data() + 12);
-  if (length > max_blob_size()) return info;
-  std::uint32_t crc = crc32_update(kCrc32Init, std::span<const std::uint8_t>(h.data() + 4, 12));
+  const ParamRecordHeader header = parse_param_record_header(h, max_blob_size());
+  if (!header.valid) return info;
+  const std::uint32_t length = header.length;
+  std::uint32_t crc = param_record_crc_start(h);
   std::array<std::uint8_t, 64> chunk{};
   for (std::size_t done = 0; done < length;) {
     const std::size_t n = length - done < chunk.size() ? length - done : chunk.size();
@@ -59,9 +34,9 @@ FlashParamStore::SlotInfo FlashParamStore::inspect(std::size_t slot) const noexc
     crc = crc32_update(crc, part);
     done += n;
   }
-  if (crc32_final(crc) != le32(h.data() + 16)) return info;
+  if (crc32_final(crc) != header.crc) return info;
   info.valid = true;
-  info.sequence = le32(h.data() + 8);
+  info.sequence = header.sequence;
   info.length = length;
   return info;
 }
@@ -69,7 +44,8 @@ FlashParamStore::SlotInfo FlashParamStore::inspect(std::size_t slot) const noexc
 int FlashParamStore::newest_valid(SlotInfo (&info)[2]) const noexcept {
   info[0] = inspect(0);
   info[1] = inspect(1);
-  if (info[0].valid && info[1].valid) return newer(info[1].sequence, info[0].sequence) ? 1 : 0;
+  if (info[0].valid && info[1].valid)
+    return param_sequence_newer(info[1].sequence, info[0].sequence) ? 1 : 0;
   if (info[0].valid) return 0;
   if (info[1].valid) return 1;
   return -1;
@@ -94,9 +70,10 @@ hal::Status FlashParamStore::load(std::span<std::uint8_t> out, std::size_t& leng
   if (flash_.read(slot_offset(static_cast<std::size_t>(best)), h) != hal::Status::kOk) {
     return hal::Status::kBusError;
   }
-  std::uint32_t crc = crc32_update(kCrc32Init, std::span<const std::uint8_t>(h.data() + 4, 12));
-  crc = crc32_final(crc32_update(crc, dst));
-  if (crc != le32(h.data() + 16)) return hal::Status::kCorrupt;
+  const ParamRecordHeader header = parse_param_record_header(h, max_blob_size());
+  if (!header.valid || crc32_final(crc32_update(param_record_crc_start(h), dst)) != header.crc) {
+    return hal::Status::kCorrupt;
+  }
   length = b.length;
   sequence = b.sequence;
   return hal::Status::kOk;
@@ -116,13 +93,7 @@ hal::Status FlashParamStore::store(std::span<const std::uint8_t> blob) noexcept 
     if (auto st = flash_.erase_sector(off / sector + s); st != hal::Status::kOk) return st;
   }
   std::array<std::uint8_t, kHeaderSize> h{};
-  put32(h.data(), kMagic);
-  put16(h.data() + 4, kVersion);
-  put16(h.data() + 6, static_cast<std::uint16_t>(kHeaderSize));
-  put32(h.data() + 8, sequence);
-  put32(h.data() + 12, static_cast<std::uint32_t>(blob.size()));
-  std::uint32_t crc = crc32_update(kCrc32Init, std::span<const std::uint8_t>(h.data() + 4, 12));
-  put32(h.data() + 16, crc32_final(crc32_update(crc, blob)));
+  encode_param_record_header(h, sequence, blob);
 
   // Header body, payload, and only then the magic that makes the slot visible to load().
   if (auto st =

@@ -1,13 +1,7 @@
 // Power-cut-safe two-slot parameter store over a hal::Flash (DESIGN.md "HAL": ParamStore).
 //
-// Slot layout (little endian), each slot a whole number of sectors:
-//   off 0  u32 magic 'MVPS' (0x5350564D)   -- programmed LAST: the commit marker
-//   off 4  u16 version (1)
-//   off 6  u16 header size (20)
-//   off 8  u32 sequence number (serial-number arithmetic, newest wins)
-//   off 12 u32 payload length
-//   off 16 u32 CRC-32 (IEEE) over bytes 4..15 and the payload
-//   off 20 payload
+// Slot layout: one record of param_record.hpp at the start of each slot (each slot a whole
+// number of sectors); its magic 'MVPS' at offset 0 is programmed LAST: the commit marker.
 // store(): target = the slot that does NOT hold the newest valid record; erase it, program
 // header (without magic) and payload, then the magic, then read back and verify. A cut at any
 // point leaves the other slot (the last good calibration) untouched; the interrupted slot fails
@@ -20,6 +14,7 @@
 #include <cstdint>
 #include <span>
 
+#include "magvec/drivers/param_record.hpp"
 #include "magvec/hal/flash.hpp"
 #include "magvec/hal/param_store.hpp"
 
@@ -32,9 +27,9 @@ struct ParamStoreLayout {
 
 class FlashParamStore final : public hal::ParamStore {
  public:
-  static constexpr std::uint32_t kMagic = 0x5350564Du;  // "MVPS" in little endian
-  static constexpr std::uint16_t kVersion = 1;
-  static constexpr std::size_t kHeaderSize = 20;
+  static constexpr std::uint32_t kMagic = kParamRecordMagic;
+  static constexpr std::uint16_t kVersion = kParamRecordVersion;
+  static constexpr std::size_t kHeaderSize = kParamRecordHeaderSize;
 
   FlashParamStore(hal::Flash& flash, const ParamStoreLayout& layout) noexcept
       : flash_(flash), layout_(layout) {}

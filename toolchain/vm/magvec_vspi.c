@@ -17,6 +17,7 @@
  * Fault injection: with crc_error_every = N > 0, every Nth data frame has one data byte flipped
  * after its CRC was computed (writable at run time in /sys/module/magvec_vspi/parameters/).
  */
+#include <linux/bug.h> /* fixp-arith.h uses BUG_ON without including it */
 #include <linux/fixp-arith.h>
 #include <linux/module.h>
 #include <linux/platform_device.h>

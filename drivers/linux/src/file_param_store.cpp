@@ -3,6 +3,7 @@
 #include "magvec/drivers/linux/file_param_store.hpp"
 
 #include <fcntl.h>
+#include <sys/file.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -218,6 +219,18 @@ bool FileParamStore::preserve_corrupt() noexcept {
 
 hal::Status FileParamStore::store(std::span<const std::uint8_t> blob) noexcept {
   if (blob.size() > max_blob_) return hal::Status::kOverflow;
+  // Serialises stores of several processes on the same directory (the temp names are shared).
+  struct DirLock {
+    int fd;
+    ~DirLock() { ::flock(fd, LOCK_UN); }
+  };
+  while (::flock(dir_fd_, LOCK_EX) < 0) {
+    if (errno != EINTR) {
+      assign_os_error(last_error_, name_, "flock directory", errno);
+      return hal::Status::kBusError;
+    }
+  }
+  const DirLock lock{dir_fd_};
   FileInfo cur = inspect(path_);
   if (cur.state == FileState::kIoError) return hal::Status::kBusError;
   std::uint32_t sequence = 1;

@@ -187,11 +187,13 @@ TEST(SocketCan, SimulatedSbgInsDecodesThroughTheRealCodec) {
   sc.num_samples = 200;
   drivers::sim::Simulator sim(sc, 4);
   drivers::sim::SimSbgIns ins(sim, drivers::sim::SimSbgConfig{});
-  ins.run_until(0.5);
   std::deque<hal::CanFrame> frames;
-  hal::CanFrame f;
-  while (ins.receive(f, 0) == hal::Status::kOk)
-    frames.push_back(f);
+  for (int k = 1; k <= 50; ++k) {  // 0.5 s, drained every 10 ms (the simulator's queue is bounded)
+    ins.run_until(0.01 * k);
+    hal::CanFrame f;
+    while (ins.receive(f, 0) == hal::Status::kOk)
+      frames.push_back(f);
+  }
   ASSERT_GT(frames.size(), 100u);
 
   drivers::sbg::CanAttitudeSource live(*rx);

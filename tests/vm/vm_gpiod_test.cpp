@@ -17,9 +17,15 @@ namespace {
 using drivers::GpiodConfig;
 using drivers::GpiodDataReadyLine;
 
-std::string chip() { return vmtest::env("MAGVEC_TEST_GPIOCHIP"); }
-std::string pull_path() { return vmtest::env("MAGVEC_TEST_GPIO_PULL"); }
-unsigned line_offset() { return static_cast<unsigned>(std::stoul(vmtest::env("MAGVEC_TEST_GPIO_LINE", "0"))); }
+std::string chip() {
+  return vmtest::env("MAGVEC_TEST_GPIOCHIP");
+}
+std::string pull_path() {
+  return vmtest::env("MAGVEC_TEST_GPIO_PULL");
+}
+unsigned line_offset() {
+  return static_cast<unsigned>(std::stoul(vmtest::env("MAGVEC_TEST_GPIO_LINE", "0")));
+}
 
 void set_pull(bool up) {
   ASSERT_TRUE(vmtest::write_sysfs(pull_path(), up ? "pull-up" : "pull-down")) << pull_path();

@@ -35,7 +35,9 @@ namespace {
 using drivers::CanFilterSpec;
 using drivers::SocketCanBus;
 
-std::string can_interface() { return vmtest::env("MAGVEC_TEST_CAN", "vcan0"); }
+std::string can_interface() {
+  return vmtest::env("MAGVEC_TEST_CAN", "vcan0");
+}
 
 std::vector<CanFilterSpec> sbg_filters() {
   const drivers::sbg::CanIds ids{};
@@ -169,8 +171,8 @@ TEST(SocketCanVm, KernelFilterDropsOtherIds) {
   for (const hal::CanFrame& w : wanted) {
     hal::CanFrame got;
     ASSERT_EQ(rx->receive(got, 1'000'000), hal::Status::kOk);
-    EXPECT_TRUE(same_payload(got, w)) << "received id 0x" << std::hex << got.id
-                                      << (got.extended ? " (extended)" : "");
+    EXPECT_TRUE(same_payload(got, w))
+        << "received id 0x" << std::hex << got.id << (got.extended ? " (extended)" : "");
   }
   hal::CanFrame extra;
   const hal::Status s = rx->receive(extra, 200'000);
@@ -281,10 +283,32 @@ pid_t spawn(const std::vector<std::string>& argv, const std::string& stdout_path
   return pid;
 }
 
-int wait_exit(pid_t pid) {
+// Exit status of `pid`; a process still running after timeout_us is killed (status 128 + 9).
+int wait_exit(pid_t pid, std::uint64_t timeout_us = 30'000'000) {
+  const std::uint64_t deadline = drivers::monotonic_us() + timeout_us;
   int status = 0;
-  if (::waitpid(pid, &status, 0) != pid) return -1;
+  pid_t r = 0;
+  while ((r = ::waitpid(pid, &status, WNOHANG)) == 0) {
+    if (drivers::monotonic_us() > deadline) {
+      ::kill(pid, SIGKILL);
+      r = ::waitpid(pid, &status, 0);
+      break;
+    }
+    ::usleep(10'000);
+  }
+  if (r != pid) return -1;
   return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+}
+
+// Receivers registered on the interface (/proc/net/can/rcvlist_all): tells when a freshly
+// started candump has its socket bound, without guessing a delay.
+int can_receivers() {
+  std::ifstream f("/proc/net/can/rcvlist_all");
+  std::string line;
+  int n = 0;
+  while (std::getline(f, line))
+    if (line.find(can_interface()) != std::string::npos) ++n;
+  return n;
 }
 
 TEST(SocketCanVm, CanplayerReplaysCandumpLogThroughDriver) {
@@ -299,7 +323,8 @@ TEST(SocketCanVm, CanplayerReplaysCandumpLogThroughDriver) {
     for (std::size_t i = 0; i < frames.size(); ++i) {
       t += 2'500;
       log << vmtest::format_candump_line(frames[i], t, can_interface()) << '\n';
-      if (i % 7 == 0) log << vmtest::format_candump_line(frame(0x3A0, 9), t, can_interface()) << '\n';
+      if (i % 7 == 0)
+        log << vmtest::format_candump_line(frame(0x3A0, 9), t, can_interface()) << '\n';
     }
   }
   const auto expected = decode_directly(frames);
@@ -328,16 +353,19 @@ TEST(SocketCanVm, CandumpRecordsWhatTheDriverSends) {
   auto tx = open_bus({});
   ASSERT_TRUE(tx);
   const std::string path = "/tmp/sbg_capture.log";
-  const pid_t dump = spawn({"candump", "-L", can_interface()}, path);
-  ASSERT_GT(dump, 0);
-  // candump must be listening before the first frame is sent.
-  ::usleep(300'000);
   const auto frames = sim_ins_frames(200, 100.0);
+  const int receivers = can_receivers();
+  // candump -n: it exits by itself after that many frames (a lost frame shows as a timeout).
+  const pid_t dump =
+      spawn({"candump", "-L", "-n", std::to_string(frames.size()), can_interface()}, path);
+  ASSERT_GT(dump, 0);
+  const std::uint64_t deadline = drivers::monotonic_us() + 10'000'000;
+  while (can_receivers() <= receivers && drivers::monotonic_us() < deadline)
+    ::usleep(5'000);
+  ASSERT_GT(can_receivers(), receivers) << "candump did not bind its socket";
   for (const hal::CanFrame& f : frames)
     ASSERT_EQ(tx->send(f), hal::Status::kOk);
-  ::usleep(300'000);
-  ::kill(dump, SIGTERM);
-  EXPECT_EQ(wait_exit(dump), 0);
+  EXPECT_EQ(wait_exit(dump, 10'000'000), 0) << "candump did not see all frames";
   std::ifstream log(path);
   std::string line;
   std::vector<vmtest::LoggedFrame> captured;

@@ -110,6 +110,29 @@ TEST(GpiodVm, QueuedEdgesAreDeliveredOldestFirst) {
   set_pull(false);
 }
 
+// The v1 uAPI keeps 16 events per line and drops newer ones when full, without telling. With
+// both edges requested the driver still notices: after the overflow the next event has the same
+// direction as the last one delivered.
+TEST(GpiodVm, LostEdgesAreDetectedWithBothEdges) {
+  set_pull(false);
+  auto line = open_line(true);
+  ASSERT_TRUE(line);
+  for (int i = 0; i < 41; ++i)  // R F R ... R: 41 edges, the kernel keeps the first 16
+    set_pull(i % 2 == 0);
+  hal::EdgeEvent ev;
+  int delivered = 0;
+  while (line->wait_edge(ev, 200'000) == hal::Status::kOk) {
+    EXPECT_EQ(ev.edge, delivered % 2 == 0 ? hal::Edge::kRising : hal::Edge::kFalling);
+    ++delivered;
+  }
+  EXPECT_EQ(delivered, 16);
+  EXPECT_EQ(line->missed_edges(), 0u);
+  set_pull(false);  // the line was high: a falling edge follows the delivered falling edge
+  ASSERT_EQ(line->wait_edge(ev, 1'000'000), hal::Status::kOk);
+  EXPECT_EQ(ev.edge, hal::Edge::kFalling);
+  EXPECT_EQ(line->missed_edges(), 1u);
+}
+
 TEST(GpiodVm, MissingLineGivesClearError) {
   drivers::OsError err;
   GpiodConfig c;

@@ -180,6 +180,22 @@ TEST(SocketCanVm, KernelFilterDropsOtherIds) {
   EXPECT_EQ(s, hal::Status::kTimeout) << "unexpected frame id 0x" << std::hex << extra.id;
 }
 
+TEST(SocketCanVm, ExtendedFilterPassesOnlyExtendedFrames) {
+  // An INS configured for 29-bit IDs: 0x18FF0131 extended; the standard 0x131 must not match.
+  auto rx = open_bus({{0x18FF0131, 0x1FFFFFFF, true}});
+  auto tx = open_bus({});
+  ASSERT_TRUE(rx && tx);
+  ASSERT_EQ(tx->send(frame(0x131, 1)), hal::Status::kOk);
+  ASSERT_EQ(tx->send(frame(0x18FF0130, 2, true)), hal::Status::kOk);
+  ASSERT_EQ(tx->send(frame(0x18FF0131, 3, true)), hal::Status::kOk);
+  hal::CanFrame got;
+  ASSERT_EQ(rx->receive(got, 1'000'000), hal::Status::kOk);
+  EXPECT_TRUE(got.extended);
+  EXPECT_EQ(got.id, 0x18FF0131u);
+  EXPECT_EQ(got.data[0], 3);
+  EXPECT_EQ(rx->receive(got, 200'000), hal::Status::kTimeout) << "id 0x" << std::hex << got.id;
+}
+
 // Error frames cannot be produced by vcan itself; a raw socket sends one (CAN_ERR_FLAG), which
 // the kernel delivers to sockets whose CAN_RAW_ERR_FILTER matches its class.
 void send_error_frame(canid_t error_class) {

@@ -29,26 +29,26 @@ std::unique_ptr<FileParamStore> FileParamStore::open(const std::string& path, st
                                                      OsError* err) {
   const std::string name = "param file " + path;
   if (path.empty() || path.back() == '/') {
-    report(err, make_error(name, "configure", "the path must name a file", EINVAL));
+    report_error(err, make_error(name, "configure", "the path must name a file", EINVAL));
     return nullptr;
   }
   if (max_blob == 0 || max_blob > kMaxBlobLimit) {
-    report(err,
-           make_error(name, "configure",
-                      "max_blob must be 1.." + std::to_string(kMaxBlobLimit) + " bytes", EINVAL));
+    report_error(
+        err, make_error(name, "configure",
+                        "max_blob must be 1.." + std::to_string(kMaxBlobLimit) + " bytes", EINVAL));
     return nullptr;
   }
   const std::string dir = directory_of(path);
   const int dir_fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
   if (dir_fd < 0) {
-    report(err, make_os_error(name, "open directory " + dir, errno));
+    report_error(err, make_os_error(name, "open directory " + dir, errno));
     return nullptr;
   }
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0 && errno != ENOENT) {
     const int e = errno;
     ::close(dir_fd);
-    report(err, make_os_error(name, "open", e));
+    report_error(err, make_os_error(name, "open", e));
     return nullptr;
   }
   if (fd >= 0) ::close(fd);

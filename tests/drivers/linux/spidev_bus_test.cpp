@@ -3,6 +3,8 @@
 // suite provides a virtual one) and skips without it. The real Ads131Fluxgate driver initialises
 // the device and reads frames over it, checking every frame's CRC. Set MAGVEC_TEST_SPIDEV_CRC=1
 // when the device injects CRC errors: they must then be detected and counted.
+// MAGVEC_TEST_SPIDEV_LOOPBACK names a spidev node whose controller returns what it receives
+// (rx = tx): a check of the transfer path itself, independent of any device protocol.
 #include "magvec/drivers/linux/spidev_bus.hpp"
 
 #include <glob.h>
@@ -14,6 +16,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <string>
+#include <vector>
 
 #include "magvec/drivers/ads131_fluxgate.hpp"
 #include "magvec/drivers/linux/linux_clock.hpp"
@@ -72,6 +75,32 @@ TEST(SpidevErrors, NonSpiDeviceAndBadConfigurationAreClear) {
   EXPECT_EQ(SpidevBus::open(c, &err), nullptr);
   EXPECT_EQ(err.error_number, EINVAL);
   EXPECT_NE(err.message.find("SPI mode"), std::string::npos) << err.message;
+}
+
+TEST(Spidev, LoopbackReturnsEveryByteUpToTheTransferLimit) {
+  if (spidev_unavailable().rfind("no /dev", 0) == 0) GTEST_SKIP() << spidev_unavailable();
+  if (env("MAGVEC_TEST_SPIDEV_LOOPBACK").empty())
+    GTEST_SKIP() << "MAGVEC_TEST_SPIDEV_LOOPBACK not set (spidev node of a loopback controller)";
+  SpidevConfig c;
+  c.device = env("MAGVEC_TEST_SPIDEV_LOOPBACK");
+  OsError err;
+  auto spi = SpidevBus::open(c, &err);
+  ASSERT_NE(spi, nullptr) << err.message;
+  std::vector<std::uint8_t> tx(SpidevBus::kMaxTransfer);
+  for (std::size_t i = 0; i < tx.size(); ++i)
+    tx[i] = static_cast<std::uint8_t>(i * 13u + 7u);
+  std::vector<std::uint8_t> rx(tx.size(), 0);
+  ASSERT_EQ(spi->transfer(tx, rx), hal::Status::kOk) << spi->last_error().message;
+  EXPECT_EQ(rx, tx);
+  const std::array<std::uint8_t, 6> frame{0x00, 0x00, 0x00, 0x11, 0x22, 0x33};
+  std::array<std::uint8_t, 6> back{};
+  ASSERT_EQ(spi->transfer(frame, back), hal::Status::kOk);
+  EXPECT_EQ(back, frame);
+  EXPECT_EQ(spi->transfers(), 2u);
+  std::vector<std::uint8_t> too_long(SpidevBus::kMaxTransfer + 1);
+  EXPECT_EQ(spi->transfer(too_long, too_long), hal::Status::kInvalidArgument);
+  EXPECT_EQ(spi->transfer({}, {}), hal::Status::kOk);
+  EXPECT_EQ(spi->errors(), 0u);
 }
 
 TEST(Spidev, Ads131FramesReadWithValidCrc) {

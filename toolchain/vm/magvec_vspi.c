@@ -4,7 +4,8 @@
  * (frame format: drivers/codecs/include/magvec/drivers/ads131m04.hpp, behaviour as
  * drivers/sim SimAds131Device). It exists so that the project's spidev driver can be tested on a
  * real kernel (VM system tests, issue 7): the device is created with the modalias "dh2228fv",
- * which the built-in spidev driver binds to, giving /dev/spidev0.0.
+ * which the built-in spidev driver binds to, giving /dev/spidev0.0. A second device (chip select
+ * 1, /dev/spidev0.1) is a plain loopback (rx = tx) for tests of the transfer path itself.
  *
  * Frames are 18 bytes: response word (16 bit + pad), 4 channel words (24 bit, two's complement),
  * CRC-16-CCITT (poly 0x1021, seed 0xFFFF) over the first 15 bytes. The response to a command
@@ -45,6 +46,7 @@ MODULE_PARM_DESC(gain1, "GAIN1 register as last written by WREG");
 static struct platform_device* vspi_pdev;
 static struct spi_controller* vspi_ctlr;
 static struct spi_device* vspi_dev;
+static struct spi_device* vspi_loop;
 
 /* Device state; only touched from transfer_one, which the SPI core serialises. */
 static u16 pending_response;
@@ -119,15 +121,25 @@ static int vspi_transfer_one(struct spi_controller* ctlr, struct spi_device* spi
                              struct spi_transfer* xfer) {
   u8 frame[FRAME_BYTES];
   u8* rx = xfer->rx_buf;
+  const u8* tx = xfer->tx_buf;
   unsigned int i;
 
-  if (xfer->len < 3)
-    return 0; /* too short to carry a command word: ignored, as by the real device */
+  if (spi->chip_select == 1) { /* loopback device: MISO wired to MOSI */
+    if (rx && tx)
+      memcpy(rx, tx, xfer->len);
+    else if (rx)
+      memset(rx, 0, xfer->len);
+    return 0;
+  }
+  if (xfer->len < 3) { /* too short to carry a command word: ignored, as by the real device */
+    if (rx) memset(rx, 0, xfer->len);
+    return 0;
+  }
   build_frame(frame);
   if (rx)
     for (i = 0; i < xfer->len; ++i)
       rx[i] = i < FRAME_BYTES ? frame[i] : 0;
-  decode_command(xfer->tx_buf, xfer->len);
+  decode_command(tx, xfer->len);
   return 0; /* completed synchronously */
 }
 
@@ -149,7 +161,7 @@ static int __init vspi_init(void) {
     goto err_pdev;
   }
   vspi_ctlr->bus_num = 0;
-  vspi_ctlr->num_chipselect = 1;
+  vspi_ctlr->num_chipselect = 2;
   vspi_ctlr->mode_bits = SPI_CPOL | SPI_CPHA;
   vspi_ctlr->bits_per_word_mask = SPI_BPW_MASK(8);
   vspi_ctlr->min_speed_hz = 1000;
@@ -165,7 +177,15 @@ static int __init vspi_init(void) {
     ret = -ENODEV;
     goto err_ctlr;
   }
-  pr_info("magvec_vspi: ADS131M04 model on spi0.0 (crc_error_every=%u)\n", crc_error_every);
+  info.chip_select = 1; /* a plain loopback device: tests of the transfer path itself */
+  info.mode = SPI_MODE_0;
+  vspi_loop = spi_new_device(vspi_ctlr, &info);
+  if (!vspi_loop) {
+    ret = -ENODEV;
+    goto err_ctlr;
+  }
+  pr_info("magvec_vspi: ADS131M04 model on spi0.0, loopback on spi0.1 (crc_error_every=%u)\n",
+          crc_error_every);
   return 0;
 err_ctlr:
   spi_unregister_controller(vspi_ctlr);
@@ -175,6 +195,7 @@ err_pdev:
 }
 
 static void __exit vspi_exit(void) {
+  spi_unregister_device(vspi_loop);
   spi_unregister_device(vspi_dev);
   spi_unregister_controller(vspi_ctlr);
   platform_device_unregister(vspi_pdev);

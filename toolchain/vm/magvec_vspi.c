@@ -1,0 +1,207 @@
+// SPDX-License-Identifier: GPL-2.0
+/*
+ * magvec_vspi: a virtual SPI controller whose only device answers like a TI ADS131M04 front end
+ * (frame format: drivers/codecs/include/magvec/drivers/ads131m04.hpp, behaviour as
+ * drivers/sim SimAds131Device). It exists so that the project's spidev driver can be tested on a
+ * real kernel (VM system tests, issue 7): the device is created with the modalias "dh2228fv",
+ * which the built-in spidev driver binds to, giving /dev/spidev0.0. A second device (chip select
+ * 1, /dev/spidev0.1) is a plain loopback (rx = tx) for tests of the transfer path itself.
+ *
+ * Frames are 18 bytes: response word (16 bit + pad), 4 channel words (24 bit, two's complement),
+ * CRC-16-CCITT (poly 0x1021, seed 0xFFFF) over the first 15 bytes. The response to a command
+ * appears in the next frame: RESET -> FF24h, WREG -> 010a aaaa ammm mmmm, anything else (NULL)
+ * -> STATUS (WLENGTH 24 bit, DRDY0..3 set, RESET bit until the reset acknowledge was read).
+ * Every data frame (answer to NULL) is a new conversion n = 0, 1, 2, ...: a field rotating by
+ * one degree per conversion,
+ *   ch0 = fixp_cos32(n) >> 9, ch1 = fixp_sin32(n) >> 9, ch2 = 0x100000, ch3 = n mod 2^23,
+ * so a reader can check values and detect lost or repeated frames (ch3).
+ * Fault injection: with crc_error_every = N > 0, every Nth data frame has one data byte flipped
+ * after its CRC was computed (writable at run time in /sys/module/magvec_vspi/parameters/).
+ */
+#include <linux/bug.h> /* fixp-arith.h uses BUG_ON without including it */
+#include <linux/fixp-arith.h>
+#include <linux/module.h>
+#include <linux/platform_device.h>
+#include <linux/spi/spi.h>
+
+#define FRAME_BYTES 18
+#define RESET_RESPONSE 0xFF24
+#define STATUS_RESET 0x0400
+#define STATUS_WLENGTH24 0x0100
+#define STATUS_DRDY 0x000F
+
+static unsigned int crc_error_every;
+module_param(crc_error_every, uint, 0644);
+MODULE_PARM_DESC(crc_error_every, "corrupt every Nth data frame after its CRC (0 = never)");
+static unsigned int data_frames;
+module_param(data_frames, uint, 0444);
+MODULE_PARM_DESC(data_frames, "data frames (conversions) sent");
+static unsigned int crc_errors_injected;
+module_param(crc_errors_injected, uint, 0444);
+MODULE_PARM_DESC(crc_errors_injected, "data frames sent with a corrupted byte");
+static unsigned int gain1;
+module_param(gain1, uint, 0444);
+MODULE_PARM_DESC(gain1, "GAIN1 register as last written by WREG");
+
+static struct platform_device* vspi_pdev;
+static struct spi_controller* vspi_ctlr;
+static struct spi_device* vspi_dev;
+static struct spi_device* vspi_loop;
+
+/* Device state; only touched from transfer_one, which the SPI core serialises. */
+static u16 pending_response;
+static bool pending_is_status = true;
+static bool reset_flag = true;
+
+static u16 crc16_ccitt(const u8* p, size_t n) {
+  u16 crc = 0xFFFF;
+  int bit;
+
+  while (n--) {
+    crc ^= (u16)(*p++) << 8;
+    for (bit = 0; bit < 8; ++bit)
+      crc = (crc & 0x8000) ? (u16)((crc << 1) ^ 0x1021) : (u16)(crc << 1);
+  }
+  return crc;
+}
+
+static void put16(u8* p, u16 v) {
+  p[0] = v >> 8;
+  p[1] = v & 0xFF;
+  p[2] = 0;
+}
+
+static void put24(u8* p, s32 v) {
+  u32 u = (u32)v & 0xFFFFFF;
+
+  p[0] = u >> 16;
+  p[1] = (u >> 8) & 0xFF;
+  p[2] = u & 0xFF;
+}
+
+static void build_frame(u8* out) {
+  bool data = pending_is_status;
+  u16 response = pending_response;
+  u32 n = data_frames;
+
+  if (data) response = STATUS_WLENGTH24 | STATUS_DRDY | (reset_flag ? STATUS_RESET : 0);
+  put16(out, response);
+  put24(out + 3, fixp_cos32((int)(n % 360)) >> 9);
+  put24(out + 6, fixp_sin32((int)(n % 360)) >> 9);
+  put24(out + 9, 0x100000);
+  put24(out + 12, (s32)(n & 0x7FFFFF));
+  put16(out + 15, crc16_ccitt(out, 15));
+  if (response == RESET_RESPONSE) reset_flag = false;
+  if (data) {
+    ++data_frames;
+    if (crc_error_every && data_frames % crc_error_every == 0) {
+      out[4] ^= 0x01; /* one flipped bit: CRC-16 always detects it */
+      ++crc_errors_injected;
+    }
+  }
+}
+
+static void decode_command(const u8* tx, unsigned int len) {
+  u16 cmd = tx ? (u16)((tx[0] << 8) | tx[1]) : 0;
+
+  pending_is_status = false;
+  if (cmd == 0x0011) { /* RESET */
+    reset_flag = true;
+    gain1 = 0;
+    pending_response = RESET_RESPONSE;
+  } else if ((cmd & 0xE000) == 0x6000) { /* WREG */
+    if (((cmd >> 7) & 0x3F) == 0x04 && len >= 6) gain1 = (tx[3] << 8) | tx[4];
+    pending_response = 0x4000 | (cmd & 0x1FFF);
+  } else { /* NULL and unmodelled commands: STATUS + data */
+    pending_is_status = true;
+  }
+}
+
+static int vspi_transfer_one(struct spi_controller* ctlr, struct spi_device* spi,
+                             struct spi_transfer* xfer) {
+  u8 frame[FRAME_BYTES];
+  u8* rx = xfer->rx_buf;
+  const u8* tx = xfer->tx_buf;
+  unsigned int i;
+
+  if (spi->chip_select == 1) { /* loopback device: MISO wired to MOSI */
+    if (rx && tx)
+      memcpy(rx, tx, xfer->len);
+    else if (rx)
+      memset(rx, 0, xfer->len);
+    return 0;
+  }
+  if (xfer->len < 3) { /* too short to carry a command word: ignored, as by the real device */
+    if (rx) memset(rx, 0, xfer->len);
+    return 0;
+  }
+  build_frame(frame);
+  if (rx)
+    for (i = 0; i < xfer->len; ++i)
+      rx[i] = i < FRAME_BYTES ? frame[i] : 0;
+  decode_command(tx, xfer->len);
+  return 0; /* completed synchronously */
+}
+
+static int __init vspi_init(void) {
+  struct spi_board_info info = {
+      .modalias = "dh2228fv", /* in spidev's id table: spidev binds */
+      .max_speed_hz = 8000000,
+      .bus_num = 0,
+      .chip_select = 0,
+      .mode = SPI_MODE_1,
+  };
+  int ret;
+
+  vspi_pdev = platform_device_register_simple("magvec-vspi", -1, NULL, 0);
+  if (IS_ERR(vspi_pdev)) return PTR_ERR(vspi_pdev);
+  vspi_ctlr = spi_alloc_master(&vspi_pdev->dev, 0);
+  if (!vspi_ctlr) {
+    ret = -ENOMEM;
+    goto err_pdev;
+  }
+  vspi_ctlr->bus_num = 0;
+  vspi_ctlr->num_chipselect = 2;
+  vspi_ctlr->mode_bits = SPI_CPOL | SPI_CPHA;
+  vspi_ctlr->bits_per_word_mask = SPI_BPW_MASK(8);
+  vspi_ctlr->min_speed_hz = 1000;
+  vspi_ctlr->max_speed_hz = 25000000;
+  vspi_ctlr->transfer_one = vspi_transfer_one;
+  ret = spi_register_controller(vspi_ctlr);
+  if (ret) {
+    spi_controller_put(vspi_ctlr);
+    goto err_pdev;
+  }
+  vspi_dev = spi_new_device(vspi_ctlr, &info);
+  if (!vspi_dev) {
+    ret = -ENODEV;
+    goto err_ctlr;
+  }
+  info.chip_select = 1; /* a plain loopback device: tests of the transfer path itself */
+  info.mode = SPI_MODE_0;
+  vspi_loop = spi_new_device(vspi_ctlr, &info);
+  if (!vspi_loop) {
+    ret = -ENODEV;
+    goto err_ctlr;
+  }
+  pr_info("magvec_vspi: ADS131M04 model on spi0.0, loopback on spi0.1 (crc_error_every=%u)\n",
+          crc_error_every);
+  return 0;
+err_ctlr:
+  spi_unregister_controller(vspi_ctlr);
+err_pdev:
+  platform_device_unregister(vspi_pdev);
+  return ret;
+}
+
+static void __exit vspi_exit(void) {
+  spi_unregister_device(vspi_loop);
+  spi_unregister_device(vspi_dev);
+  spi_unregister_controller(vspi_ctlr);
+  platform_device_unregister(vspi_pdev);
+}
+
+module_init(vspi_init);
+module_exit(vspi_exit);
+MODULE_DESCRIPTION("magvec: virtual SPI controller with an ADS131M04 model (VM tests)");
+MODULE_LICENSE("GPL");

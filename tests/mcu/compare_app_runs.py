@@ -36,9 +36,10 @@ def parse(text):
             continue
         parts = line.split()
         key = parts[1]
-        if key == "rec":
-            out["rec"].append((int(parts[2]), int(parts[3]), [value(t) for t in parts[4:]]))
-        elif key in ("w", "b", "sigma", "g", "g_sigma", "stats"):
+        if key == "rec":  # t_us flags cal_id raw(3) h_s(3) F sigma_F h_n(3)
+            out["rec"].append((int(parts[2]), int(parts[3], 16), int(parts[4]),
+                               [value(t) for t in parts[5:]]))
+        elif key in ("model", "b", "sigma", "g", "g_sigma", "validation_rms", "stats"):
             out[key] = [value(t) for t in parts[2:]]
         else:
             out["lines"][key] = " ".join(parts[2:])
@@ -100,13 +101,17 @@ def main():
     h = parse(host_out)
     print("host:   " + h["lines"].get("summary", "(no summary)"))
 
-    for key in ("pcut", "reload", "counts"):
+    for key in ("boot", "pcut", "reload", "counts"):
         c.check(t["lines"].get(key) == h["lines"].get(key),
                 f"{key} identical: '{t['lines'].get(key)}'")
     c.check("initialised=1" in t["lines"].get("ekf", ""), "EKF initialised on target")
+    c.check(t["lines"].get("loop", "").startswith("state=applied cal_id=1"),
+            f"SensorLoop applied the calibration on target: {t['lines'].get('loop')}")
 
     if a.mode == "double":
-        c.check(t["lines"].get("ekf") == h["lines"].get("ekf"), "EKF counters identical")
+        for key in ("ekf", "loop", "milestones"):
+            c.check(t["lines"].get(key) == h["lines"].get(key), f"{key} identical: "
+                    f"target '{t['lines'].get(key)}' host '{h['lines'].get(key)}'")
         ref = h
     else:
         rc, d_out, err = run([a.host_double], a.timeout)
@@ -120,7 +125,7 @@ def main():
     # 1-sigma (FRACTION, default 3), and the intensity RMSE within 1.1x. Reported: the largest
     # relative difference and the largest difference in sigma.
     worst_rel = 0.0
-    for key in ("w", "b", "g"):
+    for key in ("model", "b", "g"):
         for x, y in zip(t[key], ref[key]):
             worst_rel = max(worst_rel, abs(x - y) / max(abs(x), abs(y), 1e-300))
     print(f"largest relative difference of W, b, G vs the host: {worst_rel:.3g}")
@@ -136,8 +141,13 @@ def main():
                     f"{ref[key][i]:.9g}: {z:.3f} sigma (<= {a.fraction})")
     print(f"largest |image - host double| / sigma: {worst:.3f}")
     c.check(len(t["rec"]) == len(h["rec"]) and len(t["rec"]) > 0 and
-            all(ti == hi and tt == ht for (ti, tt, _), (hi, ht, _) in zip(t["rec"], h["rec"])),
-            f"{len(t['rec'])} record lines at the same samples/times")
+            all(tr[0] == hr[0] for tr, hr in zip(t["rec"], h["rec"])),
+            f"{len(t['rec'])} record lines at the same sample times")
+    worst_rec = 0.0
+    for tr, hr in zip(t["rec"], ref["rec"] if a.mode == "float" else h["rec"]):
+        for x, y in zip(tr[3][3:7], hr[3][3:7]):  # h_s and F
+            worst_rec = max(worst_rec, abs(x - y) / max(abs(x), abs(y), 1e-300))
+    print(f"largest relative difference of the records' h_s, F vs the host: {worst_rec:.3g}")
 
     print(f"{c.failures} failure(s)")
     return 1 if c.failures else 0

@@ -481,8 +481,7 @@ int app_main(const char* args) noexcept {
     report_g(w, ekf);
     const Scalar vrms = g_loop.last_validation_rms_nT();
     report_vec(w, "validation_rms", &vrms, 1);
-    const double rmse_cal =
-        st.cal_samples > 0 ? std::sqrt(st.sum_sq_f_cal / st.cal_samples) : 0.0;
+    const double rmse_cal = st.cal_samples > 0 ? std::sqrt(st.sum_sq_f_cal / st.cal_samples) : 0.0;
     const double rmse_uncal =
         st.uncal_samples > 0 ? std::sqrt(st.sum_sq_f_uncal / st.uncal_samples) : 0.0;
     const double rmse_hn = st.hn_samples > 0 ? std::sqrt(st.sum_sq_hn_cal / st.hn_samples) : 0.0;

@@ -1,7 +1,7 @@
 // Host "board": the same application as a hosted executable (the reference run the mcu tests
 // compare the emulated images with). Arguments are joined into the option string.
-#include <cstdio>
 #include <cstdint>
+#include <cstdio>
 #include <cstring>
 #include <span>
 

@@ -40,8 +40,8 @@ extern "C" void magvec_board_early_init(void) {
   const std::uint32_t enabled = mmio32(kRcc + 0x40);  // read back: clock running before use
   (void)enabled;
   // PA2 (TX), PA3 (RX): alternate function 7 (USART2).
-  mmio32(kGpioA + 0x00) = (mmio32(kGpioA + 0x00) & ~(0xFu << 4)) | (0xAu << 4);      // MODER2/3 = AF
-  mmio32(kGpioA + 0x20) = (mmio32(kGpioA + 0x20) & ~(0xFFu << 8)) | (0x77u << 8);    // AFRL2/3 = AF7
+  mmio32(kGpioA + 0x00) = (mmio32(kGpioA + 0x00) & ~(0xFu << 4)) | (0xAu << 4);    // MODER2/3 = AF
+  mmio32(kGpioA + 0x20) = (mmio32(kGpioA + 0x20) & ~(0xFFu << 8)) | (0x77u << 8);  // AFRL2/3 = AF7
   g_usart2.init(kHsiHz, kBaud);
 }
 

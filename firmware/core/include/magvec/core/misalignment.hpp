@@ -398,7 +398,7 @@ MisalignmentSolution<Scalar> joint_rm_hn(const SampleStore<Scalar, Capacity>& st
         j.col(k) = rt * (d[static_cast<std::size_t>(k)].transpose() * h);
       j.template rightCols<3>() = -Mat3<Scalar>::Identity();
       nmat.noalias() += j.transpose().lazyProduct(j);  // fixed-size, heap-free (not rankUpdate:
-                                                        // its blocked kernel has a heap fallback)
+                                                       // its blocked kernel has a heap fallback)
       g += j.transpose() * r;
       sse += r.squaredNorm();
     }

@@ -56,7 +56,7 @@ class SemihostingPort final : public magvec::hal::SerialPort {
 };
 
 SemihostingPort g_semihosting;
-magvec::app::CmsdkUart g_uart0(magvec::app::CmsdkUart::kMps2Uart0);
+constinit magvec::app::CmsdkUart g_uart0(magvec::app::CmsdkUart::kMps2Uart0);
 
 }  // namespace
 

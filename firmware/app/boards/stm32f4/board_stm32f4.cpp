@@ -15,7 +15,7 @@ constexpr std::uintptr_t kGpioA = 0x40020000u;
 constexpr std::uint32_t kHsiHz = 16'000'000u;  // APB1 = HSI after reset (no PLL set up)
 constexpr std::uint32_t kBaud = 115'200u;
 
-magvec::app::Stm32Usart g_usart2(magvec::app::Stm32Usart::kUsart2);
+constinit magvec::app::Stm32Usart g_usart2(magvec::app::Stm32Usart::kUsart2);
 
 }  // namespace
 

@@ -6,6 +6,9 @@
 //   Stm32Usart STM32F4 USART (RM0090 section 30.6): SR 0x00 (bit5 RXNE, bit6 TC, bit7 TXE),
 //              DR 0x04, BRR 0x08, CR1 0x0C (bit2 RE, bit3 TE, bit13 UE). Pins and clocks are the
 //              board's job (board_stm32f4.cpp).
+// The constructors are constexpr so that a board's UART object is constant-initialised (declare it
+// constinit): the boards initialise their UART in magvec_board_early_init, which runs before the
+// C++ dynamic initialisers; a dynamically initialised object would still have base 0 there.
 // write() blocks until every byte is in the transmitter (a record line at 115200 Bd is ~10 ms: the
 // caller decimates); read() returns what the receive register holds, never waits (timeout 0).
 #pragma once
@@ -27,7 +30,7 @@ class CmsdkUart final : public hal::SerialPort {
   static constexpr std::uintptr_t kMps2Uart0 = 0x40004000u;
   static constexpr std::uint32_t kMps2PclkHz = 25'000'000u;  // mps2 APB clock
 
-  explicit CmsdkUart(std::uintptr_t base) noexcept : base_(base) {}
+  constexpr explicit CmsdkUart(std::uintptr_t base) noexcept : base_(base) {}
 
   void init(std::uint32_t pclk_hz, std::uint32_t baud) noexcept {
     std::uint32_t div = pclk_hz / baud;
@@ -67,7 +70,7 @@ class Stm32Usart final : public hal::SerialPort {
  public:
   static constexpr std::uintptr_t kUsart2 = 0x40004400u;
 
-  explicit Stm32Usart(std::uintptr_t base) noexcept : base_(base) {}
+  constexpr explicit Stm32Usart(std::uintptr_t base) noexcept : base_(base) {}
 
   // 8N1, oversampling by 16: BRR = f_pclk / baud (mantissa.fraction in one division).
   void init(std::uint32_t pclk_hz, std::uint32_t baud) noexcept {

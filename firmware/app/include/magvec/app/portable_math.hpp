@@ -1,7 +1,11 @@
 // Portable double-precision elementary functions (issue 8: the M7 double image and its host twin
 // must agree bit for bit). newlib (fdlibm) and glibc compute sin, cos, atan2, asin, log, ... with
-// different algorithms whose results differ in the last bit for some arguments; one such bit in
-// the simulator flips an ADC code rounding and the two runs then calibrate from different data.
+// different algorithms, neither correctly rounded in general, so their results may differ in the
+// last bit; one such bit in the simulator or the calibrator can flip a rounding downstream (an
+// ADC code, a gate decision) and the two runs then diverge. With these the image and its twin do
+// not depend on the C library at all. (Measured on the app scenario: once the simulator's noise
+// draws were sequenced, the runs also matched with the two C libraries; this removes the latent
+// dependence rather than a difference observed in that run.)
 // These implementations use only IEEE-754 basic operations (+ - * / and sqrt, correctly rounded
 // on every target) in a fixed order, so every IEEE double target without FMA contraction
 // (-ffp-contract=off) computes the same bits. Methods (after fdlibm, Sun Microsystems 1993):

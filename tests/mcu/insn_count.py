@@ -4,14 +4,16 @@
 The plugin is not shipped by Debian: it is built from tests/plugin/insn.c of Debian's qemu source
 package (apt-get source with a private APT_CONFIG holding a deb-src entry; cached in --cache),
 needs libglib2.0-dev. Counts are deterministic (inline counting).
-Method: the image runs `quiet n=<k>` (full pipeline) and `baseline n=<k>` (simulated devices and
-codecs only) for several k; D(k) = full - baseline is the core work (attitude buffer, EKF,
-compensation). Per-sample figures are differences of D between two k in the same phase, so
-one-off work (the EKF's initial fit, start-up) cancels:
-  calibrating: EKF update + compensation + attitude (k = 2500 -> 3000, after the initial fit)
-  survey:      compensation + attitude only (k = 4000 -> 6000)
-  initial fit: D(2000) - D(1000) - the per-sample work of those 1000 samples (approximate split:
-               collecting samples before the fit, filter samples after it).
+Method: the image runs `quiet n=<k>` (full pipeline: attitude buffer + core::SensorLoop with the
+EkfCalibrator) and `baseline n=<k>` (simulated devices and codecs only); D(k) = full - baseline is
+the firmware's own work. A first quiet run reports the loop's milestones (the samples that
+completed the EKF's initial fit, ran the calibrator's solve, applied the calibration); the windows
+are placed from them, and per-sample figures are differences of D between two k in one phase:
+  calibrating: EKF update + compensation + loop (the filter running, before the solve)
+  calibrated:  compensation + loop (after the calibration is applied)
+  solve:       D(solve) - D(solve - 1) - the calibrated per-sample work: the calibrator's batch
+               solve (misalignment fit of the EKF's model + Li canonicalisation)
+  initial fit: D(init) - D(init - 1) - the collecting per-sample work: the EKF's start-up fit
 Exit 77 when the plugin cannot be built (no network, no glib headers) or the image is missing.
 """
 import argparse
@@ -32,6 +34,7 @@ def skip(msg):
 
 
 def build_plugin(cache):
+    cache = os.path.abspath(cache)  # the private APT config needs absolute paths
     so = os.path.join(cache, "libinsn.so")
     if os.path.exists(so):
         return so
@@ -83,12 +86,25 @@ def count(qemu, machine, elf, plugin, args, timeout):
         text = open(log.name).read()
     m = re.search(r"insns: (\d+)", text)
     # Counting only (the mcu tests check the results): a run cut short by n=<k> may end before the
-    # calibration completes (exit code 5), a baseline run stores the identity model twice so its
-    # power-cut sweep sees no new blob (exit code 3); anything else is a failure.
-    if p.returncode not in (0, 3, 5) or m is None:
+    # calibration is applied (exit code 5); anything else is a failure.
+    if p.returncode not in (0, 5) or m is None:
         print(p.stdout, p.stderr, text)
         raise SystemExit(f"qemu run {args} failed (rc {p.returncode})")
     return int(m.group(1))
+
+
+def milestones(qemu, machine, elf, timeout):
+    sh = "enable=on,target=native,arg=magvec_app,arg=quiet"
+    p = subprocess.run([qemu, "-M", machine, "-nographic", "-monitor", "none", "-serial", "none",
+                        "-semihosting-config", sh, "-kernel", elf],
+                       capture_output=True, text=True, timeout=timeout)
+    m = re.search(r"MV milestones init_fit=(\d+) solve=(\d+) applied=(\d+)", p.stdout)
+    n = re.search(r"MV counts samples=(\d+)", p.stdout)
+    if p.returncode != 0 or m is None or n is None:
+        print(p.stdout, p.stderr)
+        raise SystemExit(f"quiet run failed (rc {p.returncode})")
+    return {"init_fit": int(m.group(1)), "solve": int(m.group(2)), "applied": int(m.group(3)),
+            "samples": int(n.group(1))}
 
 
 def main():
@@ -97,6 +113,8 @@ def main():
     ap.add_argument("--elf", required=True)
     ap.add_argument("--cache", required=True)
     ap.add_argument("--budget", type=float, default=0, help="fail if calibrating/sample > this")
+    ap.add_argument("--budget-only", action="store_true",
+                    help="measure the calibrating per-sample figure only (the ctest)")
     ap.add_argument("--timeout", type=float, default=300)
     a = ap.parse_args()
     if not os.path.exists(a.elf):
@@ -106,20 +124,38 @@ def main():
         skip("qemu-system-arm not installed")
     plugin = build_plugin(a.cache)
 
-    ks = (1000, 2000, 2500, 3000, 4000, 6000)
+    ms = milestones(qemu, a.machine, a.elf, a.timeout)
+    init, solve, applied, total = ms["init_fit"], ms["solve"], ms["applied"], ms["samples"]
+    if not (0 < init < solve < applied < total):
+        raise SystemExit(f"unexpected milestones {ms}")
     d = {}
-    for k in ks:
-        full = count(qemu, a.machine, a.elf, plugin, ["quiet", f"n={k}"], a.timeout)
-        base = count(qemu, a.machine, a.elf, plugin, ["baseline", f"n={k}"], a.timeout)
-        d[k] = full - base
-        print(f"n={k}: full {full} baseline {base} core {d[k]}")
-    cal = (d[3000] - d[2500]) / 500
-    survey = (d[6000] - d[4000]) / 2000
-    collecting = d[1000] / 1000  # before the initial fit: attitude + compensation + buffering
-    print(f"per sample, calibrating (EKF update + compensation + attitude): {cal:.0f} instructions")
-    print(f"per sample, survey (compensation + attitude):                  {survey:.0f} instructions")
-    print(f"per sample, collecting for the initial fit:                     {collecting:.0f} instructions")
-    print(f"core work of samples 1000..2000 (includes the one-off initial fit): {d[2000] - d[1000]}")
+
+    def core(k):
+        if k not in d:
+            full = count(qemu, a.machine, a.elf, plugin, ["quiet", f"n={k}"], a.timeout)
+            base = count(qemu, a.machine, a.elf, plugin, ["baseline", f"n={k}"], a.timeout)
+            d[k] = full - base
+            print(f"n={k}: full {full} baseline {base} firmware {d[k]}")
+        return d[k]
+
+    c0, c1 = init + 100, solve - 100
+    cal = (core(c1) - core(c0)) / (c1 - c0)
+    print(f"per sample, calibrating (EKF update + compensation + loop): {cal:.0f} instructions")
+    if a.budget_only:
+        ok = a.budget <= 0 or cal <= a.budget
+        print(f"{'ok' if ok else 'FAIL'}: {cal:.0f} instructions per calibrating sample, "
+              f"budget {a.budget:.0f}")
+        return 0 if ok else 1
+    s0, s1 = applied + 100, min(total, applied + 2100)
+    calibrated = (core(s1) - core(s0)) / (s1 - s0)
+    collecting = (core(init - 1) - core(init - 101)) / 100
+    solve_insns = core(solve) - core(solve - 1) - calibrated
+    init_insns = core(init) - core(init - 1) - collecting
+    print(f"milestones: initial fit at sample {init}, solve at {solve}, applied at {applied}")
+    print(f"per sample, calibrated (compensation + loop):               {calibrated:.0f} instructions")
+    print(f"per sample, collecting for the initial fit:                 {collecting:.0f} instructions")
+    print(f"batch solve (misalignment fit + Li form):                   {solve_insns:.0f} instructions")
+    print(f"EKF initial fit (quadric fit + Gauss-Newton + P0):          {init_insns:.0f} instructions")
     if a.budget > 0 and cal > a.budget:
         print(f"FAIL: {cal:.0f} > budget {a.budget:.0f} instructions per sample")
         return 1

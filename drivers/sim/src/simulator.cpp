@@ -293,7 +293,14 @@ bool Simulator::next(SimSample* out) noexcept {
   s.m_true_nT = a_rm_ * (s.r_bn_true * s.h_n_true_nT) + true_offset_at(s.t_s);
 
   // Every stream is advanced by a fixed amount per sample whatever the configuration.
-  const Vec3<double> noise(mag_noise_.next(), mag_noise_.next(), mag_noise_.next());
+  // Sequenced draws: the evaluation order of function arguments is unspecified (GCC evaluates
+  // Vec3(next(), next(), next()) right to left on x86-64 but not on arm-none-eabi, which swapped
+  // the x and z noise between the firmware image and its host twin). z, y, x keeps the stream
+  // assignment the host always had.
+  const double noise_z = mag_noise_.next();
+  const double noise_y = mag_noise_.next();
+  const double noise_x = mag_noise_.next();
+  const Vec3<double> noise(noise_x, noise_y, noise_z);
   const double u_spike = faults_.uniform(), u_drop = faults_.uniform();
   const double u_axis = faults_.uniform(), u_sign = faults_.uniform();
   const double f_noise = f_noise_.next();

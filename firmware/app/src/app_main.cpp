@@ -1,27 +1,32 @@
 // The firmware application (issue 8): a fixed, deterministic scenario run end to end on the MCU.
 //   Simulator (survey scenario, Li et al. 2023 truth, 50 Hz, fixed seed) -> simulated ADS131M04
 //   (SPI + DRDY) and SBG INS (CAN) speaking the real bytes -> the real codecs (Ads131Fluxgate,
-//   CanAttitudeSource) -> AttitudeBuffer -> CalPipeline (ScalarEkf + Compensator, Scalar =
-//   MAGVEC_APP_SCALAR) -> report lines.
-// Phases: calibration manoeuvre (the EKF learns, outputs use the active = identity model), then
-// the calibration is stored in the ParamStore over SimFlash, a power-cut sweep checks that every
-// interrupted store leaves the old or the new blob, the blob is reloaded from flash as after a
-// reboot and installed, and the survey line is compensated with it.
-// Report: "MV <key> ..." lines; values as IEEE-754 double bit patterns in hex (exact; see
-// line_writer.hpp), parsed by tests/mcu/compare_app_runs.py. Arguments (space separated):
-//   quiet      no per-record lines (instruction counting)
-//   baseline   skip the core work (attitude buffer, EKF, compensation): devices + codecs only
+//   CanAttitudeSource) -> AttitudeBuffer -> core::SensorLoop<Scalar, core::EkfCalibrator>
+//   (Scalar = MAGVEC_APP_SCALAR) -> OutputRecords -> hal::RecordSink (RecordLineSink: semihosting
+//   console, or the board UART) -- the same composition as `magvec run`, without an OS.
+// Boot: the ParamStore (FlashParamStore over SimFlash) is read; with no stored calibration the
+// loop starts calibrating (ScalarEkf: initial fit, filter, then the misalignment solve, held-out
+// validation). When the loop applies the calibration it is stored in the ParamStore, a power-cut
+// sweep checks that every interrupted store leaves the old or the new blob, the blob is reloaded
+// from flash as after a reboot and installed as the active calibration (it must be bit-identical).
+// Report: "MV <key> ..." lines; exact values as IEEE-754 double bit patterns in hex, parsed by
+// tests/mcu/compare_app_runs.py. Arguments (space separated):
+//   quiet      no record lines and no test statistics (instruction counting)
+//   baseline   skip the core work (attitude buffer, loop): devices + codecs only
+//   uart       records to the board UART (mps2: CMSDK UART0 = qemu -serial) instead of the console
 //   n=<k>      stop after k magnetometer samples
-// Exit code 0 when every on-target check passed (power-cut sweep, reload, EKF initialised).
+// Exit code 0 when every on-target check passed (power-cut sweep, reload, calibration applied).
 #include <cstdint>
 #include <cstring>
 #include <limits>
 
 #include "magvec/app/board.hpp"
-#include "magvec/app/cal_pipeline.hpp"
 #include "magvec/app/line_writer.hpp"
+#include "magvec/app/record_line_sink.hpp"
 #include "magvec/core/attitude_buffer.hpp"
+#include "magvec/core/ekf_calibrator.hpp"
 #include "magvec/core/frames.hpp"
+#include "magvec/core/sensor_loop.hpp"
 #include "magvec/drivers/ads131_fluxgate.hpp"
 #include "magvec/drivers/param_store.hpp"
 #include "magvec/drivers/sbg_can.hpp"
@@ -60,9 +65,24 @@ sim::SimRigConfig make_rig_config() noexcept {
   return r;
 }
 
-core::EkfConfig<Scalar> make_ekf_config(const sim::ScenarioConfig& s) noexcept {
-  core::EkfConfig<Scalar> c;
-  c.noise_sigma_nT = static_cast<Scalar>(s.mag_noise_nT);
+// Alignment store of the calibrator (misalignment fit): 128 decimated samples (2 deg apart) keep
+// core + loop within the 16 KiB RAM budget in float (256 would need 13 KiB for the store alone).
+constexpr std::size_t kAlignCapacity = 128;
+using Calibrator = core::EkfCalibrator<Scalar, kAlignCapacity>;
+using Loop = core::SensorLoop<Scalar, Calibrator>;
+
+core::EkfCalibratorConfig<Scalar> make_cal_config(const sim::ScenarioConfig& s) noexcept {
+  core::EkfCalibratorConfig<Scalar> c;
+  c.ekf.noise_sigma_nT = static_cast<Scalar>(s.mag_noise_nT);
+  // The 60 s manoeuvre at 50 Hz is 3000 samples: initial fit (~100), filter updates, the solve,
+  // then 200 held-out validation samples must all fit in it.
+  c.min_updates = 1500;
+  return c;
+}
+
+core::LoopConfig<Scalar> make_loop_config(const sim::ScenarioConfig& s) noexcept {
+  core::LoopConfig<Scalar> c;
+  c.noise_nT = static_cast<Scalar>(s.mag_noise_nT > 0 ? s.mag_noise_nT : 1.0);
   return c;
 }
 
@@ -122,6 +142,7 @@ bool deserialise(const std::uint8_t* blob, std::size_t n, core::SensorModel<Scal
 struct Options {
   bool records{true};
   bool core{true};
+  bool uart{false};
   std::uint32_t max_samples{std::numeric_limits<std::uint32_t>::max()};
 };
 
@@ -135,6 +156,7 @@ Options parse_options(const char* a) noexcept {
       ++a;
     const auto len = static_cast<std::size_t>(a - w);
     if (len == 5 && std::strncmp(w, "quiet", 5) == 0) o.records = false;
+    if (len == 4 && std::strncmp(w, "uart", 4) == 0) o.uart = true;
     if (len == 8 && std::strncmp(w, "baseline", 8) == 0) {
       o.core = false;
       o.records = false;
@@ -156,7 +178,8 @@ sim::SimRig g_rig(g_sim, make_rig_config());
 drivers::Ads131Fluxgate g_adc(g_rig.adc(), g_rig.adc(), make_rig_config().adc.transfer);
 drivers::sbg::CanAttitudeSource g_ins(g_rig.ins());
 core::AttitudeBuffer<Scalar, 64> g_attitude{core::AttitudeBufferConfig{}};
-CalPipeline<Scalar> g_pipeline(make_ekf_config(g_scenario));
+Calibrator g_cal(make_cal_config(g_scenario));
+Loop g_loop(g_cal, make_loop_config(g_scenario));
 constexpr std::size_t kSector = 1024;
 std::uint8_t g_flash_storage[4 * kSector];
 drivers::SimFlash g_flash(g_flash_storage, kSector);
@@ -213,13 +236,19 @@ PowerCutResult power_cut_sweep(const std::uint8_t (&old_blob)[kBlobBytes],
 }
 
 struct Stats {
-  std::uint32_t samples{0}, cal_samples{0}, survey_samples{0}, read_errors{0}, not_fresh{0},
-      device_errors{0}, no_attitude{0}, att_samples{0}, att_rejected{0};
-  double sum_sq_f_cal{0};     // |h_s| - F over the manoeuvre (active model: identity)
-  double sum_sq_f_survey{0};  // |h_s| - F over the survey line (stored calibration)
-  double max_abs_f_survey{0};
-  double sum_sq_hn_survey{0};  // |h_n - h_n true|^2 over the survey line
-  std::uint32_t hn_survey{0};
+  std::uint32_t samples{0}, not_fresh{0}, read_errors{0}, device_errors{0}, att_samples{0},
+      att_rejected{0}, uncal_samples{0}, cal_samples{0}, hn_samples{0};
+  double sum_sq_f_uncal{0};  // intensity - F before a calibration is active (identity model)
+  double sum_sq_f_cal{0};    // intensity - F with the stored calibration active
+  double max_abs_f_cal{0};
+  double sum_sq_hn_cal{0};  // |h_n - h_n true|^2 with the stored calibration active
+};
+
+// Loop milestones (sample numbers, 1-based, as counted by n=<k>): the insn counting windows.
+struct Milestones {
+  std::uint32_t init_fit{0};  // the sample that completed the EKF's initial fit
+  std::uint32_t solve{0};     // the sample on which the calibrator's solve ran
+  std::uint32_t applied{0};   // the sample on which the loop applied the calibration
 };
 
 void report_vec(LineWriter& w, const char* key, const Scalar* v, int n) noexcept {
@@ -229,9 +258,10 @@ void report_vec(LineWriter& w, const char* key, const Scalar* v, int n) noexcept
   w.end();
 }
 
-// G = W^T W (upper triangle 00 01 02 11 12 22) and its 1-sigma from the EKF covariance of W
-// (first-order propagation: dG = dW^T W + W^T dW).
-void report_g(LineWriter& w, const core::ScalarEkf<Scalar>& ekf) noexcept {
+// G = W^T W (upper triangle 00 01 02 11 12 22) of the filter and its 1-sigma from the EKF
+// covariance of W (first-order propagation: dG = dW^T W + W^T dW).
+template <typename Ekf>
+void report_g(LineWriter& w, const Ekf& ekf) noexcept {
   const core::Mat3<Scalar> wm = ekf.c_inv();
   const core::Mat3<Scalar> g = wm.transpose() * wm;
   const core::Mat<Scalar, 12, 12> p = ekf.covariance();
@@ -255,16 +285,63 @@ void report_g(LineWriter& w, const core::ScalarEkf<Scalar>& ekf) noexcept {
   report_vec(w, "g_sigma", gs, 6);
 }
 
+void report_model(LineWriter& w, const char* key, const core::SensorModel<Scalar>& m) noexcept {
+  Scalar v[16];
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c)
+      v[3 * r + c] = m.w(r, c);
+  for (int i = 0; i < 3; ++i)
+    v[9 + i] = m.o(i);
+  v[12] = m.rm.w();
+  v[13] = m.rm.x();
+  v[14] = m.rm.y();
+  v[15] = m.rm.z();
+  report_vec(w, key, v, 16);
+}
+
+// End of the calibration: store, power-cut sweep, reload (as after a reboot), install.
+// Returns 0 or the exit code of the failed check.
+int store_and_reload(LineWriter& w, const std::uint8_t (&blob_old)[kBlobBytes]) noexcept {
+  int rc = 0;
+  std::uint8_t blob_new[kBlobBytes];
+  serialise(g_loop.active_model(), blob_new);
+  const PowerCutResult pc = power_cut_sweep(blob_old, blob_new);
+  w.str("MV pcut trials=").u(pc.trials).str(" old=").u(pc.old_blob).str(" new=");
+  w.u(pc.new_blob).str(" bad=").u(pc.bad).end();
+  if (pc.bad != 0 || pc.old_blob == 0 || pc.new_blob == 0) rc = 3;
+  std::memset(g_flash_storage, 0xFF, sizeof g_flash_storage);
+  drivers::FlashParamStore store(g_flash, kLayout);
+  const bool stored =
+      store.store(blob_old) == hal::Status::kOk && store.store(blob_new) == hal::Status::kOk;
+  drivers::FlashParamStore after_reboot(g_flash, kLayout);
+  std::uint8_t loaded[kBlobBytes + 16];
+  std::size_t n = 0;
+  std::uint32_t seq = 0;
+  core::SensorModel<Scalar> model;
+  const bool ok = stored && after_reboot.load(loaded, n, seq) == hal::Status::kOk &&
+                  deserialise(loaded, n, &model) && seq == 2 &&
+                  std::memcmp(loaded, blob_new, kBlobBytes) == 0;
+  w.str("MV reload ok=").u(ok ? 1 : 0).str(" seq=").u(seq).str(" bytes=").u(n).end();
+  if (!ok) return 4;
+  // The reloaded model replaces the loop's (bit-identical: the blob holds doubles).
+  std::uint8_t again[kBlobBytes];
+  serialise(model, again);
+  if (std::memcmp(again, blob_new, kBlobBytes) != 0) return 4;
+  g_loop.set_active(model, g_loop.cal_id());
+  return rc;
+}
+
 }  // namespace
 
 int app_main(const char* args) noexcept {
   const Options opt = parse_options(args);
   LineWriter w;
+  RecordLineSink sink(board_record_port(opt.uart));
   w.str("MV begin scenario=").str(g_scenario.name).str(" seed=").u(kSeed);
   w.str(" scalar=").str(sizeof(Scalar) == 4 ? "float" : "double").str(" board=").str(board_name());
-  w.str(" core=").u(opt.core ? 1 : 0).end();
-  w.str("MV sizeof pipeline=").u(sizeof(CalPipeline<Scalar>)).str(" ekf=");
-  w.u(sizeof(core::ScalarEkf<Scalar>)).str(" attitude_buffer=").u(sizeof(g_attitude));
+  w.str(" core=").u(opt.core ? 1 : 0).str(" records=").str(opt.uart ? "uart" : "console").end();
+  w.str("MV sizeof loop=").u(sizeof(Loop)).str(" calibrator=").u(sizeof(Calibrator));
+  w.str(" ekf=").u(sizeof(Calibrator::Filter)).str(" attitude_buffer=").u(sizeof(g_attitude));
   w.str(" rig=").u(sizeof(g_rig)).end();
 
   int rc = 0;
@@ -272,12 +349,29 @@ int app_main(const char* args) noexcept {
     w.str("MV error adc_init").end();
     return 2;
   }
-  const double manoeuvre_s = g_scenario.survey.manoeuvre_s;
-  Stats st;
-  bool installed = false;
+  // Boot: a stored calibration becomes the active one; without one, calibrate.
   std::uint8_t blob_old[kBlobBytes];
-  serialise(g_pipeline.active(), blob_old);  // what the flash held before: the identity model
+  {
+    drivers::FlashParamStore boot(g_flash, kLayout);
+    std::uint8_t loaded[kBlobBytes + 16];
+    std::size_t n = 0;
+    std::uint32_t seq = 0;
+    core::SensorModel<Scalar> model;
+    const hal::Status ls = boot.load(loaded, n, seq);
+    if (ls == hal::Status::kOk && deserialise(loaded, n, &model)) {
+      g_loop.set_active(model, seq);
+    } else if (opt.core) {
+      g_loop.start_calibration();
+    }
+    w.str("MV boot stored=").u(ls == hal::Status::kOk ? 1 : 0).str(" state=");
+    w.str(core::cal_state_name(g_loop.state())).end();
+  }
+  serialise(g_loop.active_model(), blob_old);  // what the flash held before: the identity model
 
+  Stats st;
+  Milestones ms;
+  bool stored = false;
+  core::CalState prev_state = g_loop.state();
   while (st.samples < opt.max_samples && g_rig.step()) {
     // INS: every valid epoch into the attitude buffer (validity time = CAN receive - latency).
     hal::AttitudeSample a;
@@ -294,35 +388,7 @@ int app_main(const char* args) noexcept {
         ++st.att_rejected;
     }
     const sim::SimSample& truth = g_rig.last();
-    const bool calibrating = truth.t_s < manoeuvre_s;
-    if (!calibrating && !installed) {
-      // End of the manoeuvre: store, power-cut sweep, reload (as after a reboot), install.
-      installed = true;
-      std::uint8_t blob_new[kBlobBytes];
-      serialise(g_pipeline.ekf().model(), blob_new);
-      const PowerCutResult pc = power_cut_sweep(blob_old, blob_new);
-      w.str("MV pcut trials=").u(pc.trials).str(" old=").u(pc.old_blob).str(" new=");
-      w.u(pc.new_blob).str(" bad=").u(pc.bad).end();
-      if (pc.bad != 0 || pc.old_blob == 0 || pc.new_blob == 0) rc = 3;
-      std::memset(g_flash_storage, 0xFF, sizeof g_flash_storage);
-      drivers::FlashParamStore store(g_flash, kLayout);
-      const bool stored =
-          store.store(blob_old) == hal::Status::kOk && store.store(blob_new) == hal::Status::kOk;
-      drivers::FlashParamStore after_reboot(g_flash, kLayout);
-      std::uint8_t loaded[kBlobBytes + 16];
-      std::size_t n = 0;
-      std::uint32_t seq = 0;
-      core::SensorModel<Scalar> model;
-      const bool ok = stored && after_reboot.load(loaded, n, seq) == hal::Status::kOk &&
-                      deserialise(loaded, n, &model) && seq == 2;
-      w.str("MV reload ok=").u(ok ? 1 : 0).str(" seq=").u(seq).str(" bytes=").u(n).end();
-      if (!ok) {
-        rc = 4;
-      } else {
-        g_pipeline.install(model);
-      }
-    }
-    for (int guard = 0; guard < 8; ++guard) {
+    for (int guard = 0; guard < 8 && st.samples < opt.max_samples; ++guard) {
       hal::MagnetometerSample s;
       const hal::Status rs = g_adc.read(s, 0);
       if (rs == hal::Status::kTimeout || rs == hal::Status::kNoData) break;
@@ -335,78 +401,99 @@ int app_main(const char* args) noexcept {
         ++st.not_fresh;
         continue;
       }
-      if ((s.flags & hal::kMagInvalidMask) != 0) {
-        ++st.device_errors;
-        continue;
-      }
       if (!opt.core) continue;
-      const core::Vec3<Scalar> m(static_cast<Scalar>(s.m_nT[0]), static_cast<Scalar>(s.m_nT[1]),
-                                 static_cast<Scalar>(s.m_nT[2]));
+      core::MagSample<Scalar> in;
+      in.t_us = s.t_us;
+      in.m_nT = core::Vec3<Scalar>(static_cast<Scalar>(s.m_nT[0]), static_cast<Scalar>(s.m_nT[1]),
+                                   static_cast<Scalar>(s.m_nT[2]));
+      in.f_ref_nT = static_cast<Scalar>(truth.f_nT);  // the scenario's scalar reference channel
+      in.device_error = (s.flags & hal::kMagInvalidMask) != 0;
+      if (in.device_error) ++st.device_errors;
       const core::AttitudeQuery<Scalar> q = g_attitude.at(s.t_us);
       core::Mat3<Scalar> r_bn;
       const bool usable = core::attitude_usable(q.status);
-      if (usable) {
-        r_bn = core::r_bn_from_quat(q.q_nb);
-      } else {
-        ++st.no_attitude;
+      if (usable) r_bn = core::r_bn_from_quat(q.q_nb);
+      const bool was_init = g_cal.filter().initialised();
+      const core::OutputRecord<Scalar> rec = g_loop.process(in, usable ? &r_bn : nullptr);
+
+      // Milestones and the end of the calibration.
+      if (!was_init && g_cal.filter().initialised() && ms.init_fit == 0) ms.init_fit = st.samples;
+      const core::CalState state = g_loop.state();
+      if (state != prev_state) {
+        if (prev_state == core::CalState::kSolving) ms.solve = st.samples;
+        if (state == core::CalState::kApplied) ms.applied = st.samples;
+        if (state == core::CalState::kFailed) {
+          w.str("MV cal_failed failure=").u(static_cast<std::uint64_t>(g_loop.failure()));
+          w.str(" code=").str(core::ekf_cal_code_name(g_loop.solver_code())).end();
+          rc = rc != 0 ? rc : 6;
+        }
+        prev_state = state;
       }
-      const PipelineOutput<Scalar> out = g_pipeline.step(m, static_cast<Scalar>(truth.f_nT),
-                                                         usable ? &r_bn : nullptr, calibrating);
-      if (!out.valid) continue;
-      const double res = static_cast<double>(out.c.intensity) - truth.f_nT;
-      if (calibrating) {
-        ++st.cal_samples;
-        st.sum_sq_f_cal += res * res;
+      if (state == core::CalState::kApplied && !stored) {
+        stored = true;
+        const int src = store_and_reload(w, blob_old);
+        if (src != 0) rc = rc != 0 ? rc : src;
+      }
+
+      if (opt.records && st.samples % kRecordEvery == 0) (void)sink.emit(to_hal(rec));
+      if (!opt.records || (rec.flags & core::kOutDropout) != 0) continue;
+      // Test statistics (not in quiet runs: they are not part of the per-sample firmware work).
+      const double res = static_cast<double>(rec.intensity_nT) - truth.f_nT;
+      if (rec.cal_id == 0) {
+        ++st.uncal_samples;
+        st.sum_sq_f_uncal += res * res;
         continue;
       }
-      ++st.survey_samples;
-      st.sum_sq_f_survey += res * res;
-      st.max_abs_f_survey = std::fmax(st.max_abs_f_survey, std::fabs(res));
-      if (out.has_nav) {
-        ++st.hn_survey;
-        st.sum_sq_hn_survey += (out.h_n.template cast<double>() - truth.h_n_true_nT).squaredNorm();
-      }
-      if (opt.records && st.survey_samples % kRecordEvery == 1) {
-        w.str("MV rec ").u(st.samples).sp().u(s.t_us);
-        for (int i = 0; i < 3; ++i)
-          w.sp().hex(static_cast<double>(out.c.h_s(i)));
-        w.sp().hex(static_cast<double>(out.c.intensity));
-        for (int i = 0; i < 3; ++i)
-          w.sp().hex(static_cast<double>(out.h_n(i)));
-        w.end();
+      ++st.cal_samples;
+      st.sum_sq_f_cal += res * res;
+      st.max_abs_f_cal = std::fmax(st.max_abs_f_cal, std::fabs(res));
+      if ((rec.flags & core::kOutNoAttitude) == 0) {
+        ++st.hn_samples;
+        st.sum_sq_hn_cal += (rec.h_n_nT.template cast<double>() - truth.h_n_true_nT).squaredNorm();
       }
     }
   }
 
-  const core::ScalarEkf<Scalar>& ekf = g_pipeline.ekf();
+  const auto& ekf = g_cal.filter();
   const core::EkfCounters& ec = ekf.counters();
+  const core::LoopHealth& lh = g_loop.health();
   w.str("MV ekf initialised=").u(ekf.initialised() ? 1 : 0).str(" updates=").u(ec.updates);
   w.str(" gated=").u(ec.gated).str(" reinit=").u(ec.reinitialisations);
   w.str(" init_failures=").u(ec.init_failures).end();
-  w.str("MV counts samples=").u(st.samples).str(" cal=").u(st.cal_samples);
-  w.str(" survey=").u(st.survey_samples).str(" read_errors=").u(st.read_errors);
+  w.str("MV loop state=").str(core::cal_state_name(g_loop.state())).str(" cal_id=");
+  w.u(g_loop.cal_id()).str(" samples=").u(lh.samples).str(" used=").u(lh.cal_used);
+  w.str(" gated=").u(lh.cal_gated).str(" rejected=").u(lh.cal_rejected);
+  w.str(" dropouts=").u(lh.dropouts).str(" device_errors=").u(lh.device_errors);
+  w.str(" no_attitude=").u(lh.no_attitude).str(" align_samples=").u(g_cal.align_samples()).end();
+  w.str("MV milestones init_fit=").u(ms.init_fit).str(" solve=").u(ms.solve);
+  w.str(" applied=").u(ms.applied).end();
+  w.str("MV counts samples=").u(st.samples).str(" read_errors=").u(st.read_errors);
   w.str(" not_fresh=").u(st.not_fresh).str(" device_errors=").u(st.device_errors);
-  w.str(" no_attitude=").u(st.no_attitude).str(" att=").u(st.att_samples);
-  w.str(" att_rejected=").u(st.att_rejected).end();
+  w.str(" att=").u(st.att_samples).str(" att_rejected=").u(st.att_rejected);
+  w.str(" records=").u(sink.emitted()).str(" record_failures=").u(sink.failed()).end();
   if (opt.core) {
-    const core::SensorModel<Scalar> model = ekf.model();
-    report_vec(w, "w", model.w.data(), 9);  // column-major, as Eigen stores it
-    report_vec(w, "b", model.o.data(), 3);
+    const core::SensorModel<Scalar> model = g_loop.active_model();
+    report_model(w, "model", model);
+    const core::SensorModel<Scalar> fm = ekf.model();
+    report_vec(w, "b", fm.o.data(), 3);
     const core::Vec<Scalar, 12> sigma = ekf.sigma();
     report_vec(w, "sigma", sigma.data(), 12);
     report_g(w, ekf);
-    const double rmse_survey =
-        st.survey_samples > 0 ? std::sqrt(st.sum_sq_f_survey / st.survey_samples) : 0.0;
+    const Scalar vrms = g_loop.last_validation_rms_nT();
+    report_vec(w, "validation_rms", &vrms, 1);
     const double rmse_cal = st.cal_samples > 0 ? std::sqrt(st.sum_sq_f_cal / st.cal_samples) : 0.0;
-    const double rmse_hn = st.hn_survey > 0 ? std::sqrt(st.sum_sq_hn_survey / st.hn_survey) : 0.0;
-    w.str("MV stats ").hex(rmse_survey).sp().hex(st.max_abs_f_survey).sp().hex(rmse_hn);
-    w.sp().hex(rmse_cal).end();
-    w.str("MV summary rmse_F_nT=").fixed(rmse_survey, 4).str(" max_abs_F_nT=");
-    w.fixed(st.max_abs_f_survey, 4).str(" rmse_hn_nT=").fixed(rmse_hn, 4);
-    w.str(" rmse_F_uncalibrated_nT=").fixed(rmse_cal, 1).str(" b_nT=");
+    const double rmse_uncal =
+        st.uncal_samples > 0 ? std::sqrt(st.sum_sq_f_uncal / st.uncal_samples) : 0.0;
+    const double rmse_hn = st.hn_samples > 0 ? std::sqrt(st.sum_sq_hn_cal / st.hn_samples) : 0.0;
+    w.str("MV stats ").hex(rmse_cal).sp().hex(st.max_abs_f_cal).sp().hex(rmse_hn);
+    w.sp().hex(rmse_uncal).end();
+    w.str("MV summary rmse_F_nT=").fixed(rmse_cal, 4).str(" max_abs_F_nT=");
+    w.fixed(st.max_abs_f_cal, 4).str(" rmse_hn_nT=").fixed(rmse_hn, 4);
+    w.str(" rmse_F_uncalibrated_nT=").fixed(rmse_uncal, 1).str(" b_nT=");
     w.fixed(static_cast<double>(model.o(0)), 3).str(",").fixed(static_cast<double>(model.o(1)), 3);
     w.str(",").fixed(static_cast<double>(model.o(2)), 3).end();
-    if (!ekf.initialised() || st.survey_samples == 0) rc = rc != 0 ? rc : 5;
+    if (!ekf.initialised() || g_loop.state() != core::CalState::kApplied || !stored)
+      rc = rc != 0 ? rc : 5;
   }
   w.str("MV end rc=").u(static_cast<std::uint64_t>(rc)).end();
   return rc;

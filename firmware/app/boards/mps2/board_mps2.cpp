@@ -4,10 +4,12 @@
 // image links no heap. Output: SYS_WRITE to the ":tt" console handle; arguments: SYS_GET_CMDLINE
 // (qemu: -semihosting-config ...,arg=<prog>,arg=<option>..., or -kernel/-append); exit code back
 // to qemu through SYS_EXIT_EXTENDED (main's return value becomes qemu's exit status).
+// Records (option `uart`): CMSDK UART0, polled (mmio_uart.hpp), qemu's first -serial backend.
 #include <cstdint>
 #include <cstring>
 
 #include "magvec/app/board.hpp"
+#include "magvec/app/mmio_uart.hpp"
 
 namespace {
 
@@ -33,6 +35,29 @@ std::uint32_t word(const void* p) noexcept {
 std::int32_t g_console = -1;
 char g_cmdline[256];
 
+// The semihosting console as a byte stream (records under qemu by default).
+class SemihostingPort final : public magvec::hal::SerialPort {
+ public:
+  magvec::hal::Status read(std::span<std::uint8_t>, std::size_t& n_read,
+                           std::uint32_t) noexcept override {
+    n_read = 0;
+    return magvec::hal::Status::kTimeout;
+  }
+  magvec::hal::Status write(std::span<const std::uint8_t> data,
+                            std::size_t& n_written) noexcept override {
+    n_written = 0;
+    if (g_console < 0) return magvec::hal::Status::kNotReady;
+    const std::uint32_t block[3] = {static_cast<std::uint32_t>(g_console), word(data.data()),
+                                    static_cast<std::uint32_t>(data.size())};
+    const std::int32_t left = semihost(kSysWrite, block);  // bytes NOT written
+    n_written = data.size() - static_cast<std::size_t>(left > 0 ? left : 0);
+    return left == 0 ? magvec::hal::Status::kOk : magvec::hal::Status::kBusError;
+  }
+};
+
+SemihostingPort g_semihosting;
+constinit magvec::app::CmsdkUart g_uart0(magvec::app::CmsdkUart::kMps2Uart0);
+
 }  // namespace
 
 namespace magvec::app {
@@ -41,6 +66,10 @@ void board_write(const char* s, std::size_t n) noexcept {
   const std::uint32_t block[3] = {static_cast<std::uint32_t>(g_console), word(s),
                                   static_cast<std::uint32_t>(n)};
   (void)semihost(kSysWrite, block);  // returns the number of bytes NOT written
+}
+hal::SerialPort& board_record_port(bool uart) noexcept {
+  if (uart) return g_uart0;
+  return g_semihosting;
 }
 const char* board_name() noexcept {
   return MAGVEC_BOARD_NAME;
@@ -51,6 +80,7 @@ extern "C" void magvec_board_early_init(void) {
   static const char kTt[] = ":tt";
   const std::uint32_t block[3] = {word(kTt), kOpenModeWrite, sizeof kTt - 1};
   g_console = semihost(kSysOpen, block);
+  g_uart0.init(magvec::app::CmsdkUart::kMps2PclkHz, 115'200u);
 }
 
 extern "C" [[noreturn]] void _exit(int status) {

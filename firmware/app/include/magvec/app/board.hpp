@@ -8,10 +8,16 @@
 
 #include <cstddef>
 
+#include "magvec/hal/serial_port.hpp"
+
 namespace magvec::app {
 
 // Output channel for the report lines (blocking, whole buffer).
 void board_write(const char* s, std::size_t n) noexcept;
+// Byte stream of the output records (RecordLineSink): uart = false -> the report channel
+// (semihosting console / stdout), uart = true -> the board's UART (mps2: CMSDK UART0, i.e. qemu's
+// first -serial; stm32f4: USART2, its only channel; host: stdout as well).
+hal::SerialPort& board_record_port(bool uart) noexcept;
 // Board name reported in the output.
 const char* board_name() noexcept;
 

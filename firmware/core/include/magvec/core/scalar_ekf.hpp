@@ -380,7 +380,7 @@ class ScalarEkf {
     const Scalar ny = y.norm();
     if (!(ny > 0)) return std::numeric_limits<Scalar>::infinity();
     const StateVec grad = jacobian(y, v, Scalar(0)) / (Scalar(2) * ny);  // d|y|/dx
-    const StateVec f = u_.transpose() * grad;
+    const StateVec f = ut_times(grad);
     return std::sqrt(f.dot(d_.cwiseProduct(f))) * s;
   }
 
@@ -461,6 +461,31 @@ class ScalarEkf {
     initialised_ = d_.allFinite() && (d_.array() > 0).all();
   }
 
+  // All of U finite. Only the strict upper triangle can change (the diagonal stays 1, the lower
+  // triangle 0: Bierman, Agee-Turner and ud_factorise write i < j only), and v * 0 is 0 for a
+  // finite v but NaN for inf/NaN: an exact test at one multiply-add per element, a third of the
+  // cost of allFinite() over all 144 elements on the per-sample path (issue 8 budget).
+  bool u_upper_finite() const noexcept {
+    Scalar probe{0};
+    for (int j = 1; j < kN; ++j)
+      for (int i = 0; i < j; ++i)
+        probe += u_(i, j) * Scalar(0);
+    return probe == Scalar(0);
+  }
+
+  // U^T h for the unit upper triangular U: 66 multiply-adds instead of the 144 of a full product
+  // (per sample, twice: the update and the loop's intensity sigma). Same terms, summed in order.
+  StateVec ut_times(const StateVec& h) const noexcept {
+    StateVec f;
+    for (int j = 0; j < kN; ++j) {
+      Scalar acc = h(j);
+      for (int i = 0; i < j; ++i)
+        acc += u_(i, j) * h(i);
+      f(j) = acc;
+    }
+    return f;
+  }
+
   // ---- covariance factor updates ----------------------------------------------------------------
   // Agee-Turner: U D U^T + c e_k e_k^T for c > 0, O(k^2).
   void add_diagonal_noise(int k, Scalar c) noexcept {
@@ -517,7 +542,7 @@ class ScalarEkf {
       const Scalar qk = k >= kEkfBx ? cfg_.q(k) / s2 : cfg_.q(k);
       if (qk > 0) add_diagonal_noise(k, qk);
     }
-    const StateVec f0 = u_.transpose() * l0.h_row;
+    const StateVec f0 = ut_times(l0.h_row);
     const Scalar s0 = l0.r + f0.dot(d_.cwiseProduct(f0));
     const Scalar nu0 = z - l0.h;
     if (!(std::isfinite(s0) && s0 > 0 && std::isfinite(nu0)))
@@ -545,12 +570,12 @@ class ScalarEkf {
         const Linearisation l = linearise(m, fn);
         u_ = u_prior;
         d_ = d_prior;
-        bierman(u_.transpose() * l.h_row, l.r, &k, &s);
+        bierman(ut_times(l.h_row), l.r, &k, &s);
         const Scalar nu = z - l.h - l.h_row.dot(x_prior - x_);
         x_ = x_prior + k * (nu / s);
       }
     }
-    if (!x_.allFinite() || !d_.allFinite() || !u_.allFinite())
+    if (!x_.allFinite() || !d_.allFinite() || !u_upper_finite())
       return reinitialise(EkfResetReason::kNonFiniteState);
     if (!(d_.array() > 0).all()) return reinitialise(EkfResetReason::kCovarianceNotPositive);
     if (!(std::abs(c_inv().determinant()) > std::numeric_limits<Scalar>::epsilon())) {

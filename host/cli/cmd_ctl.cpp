@@ -29,8 +29,7 @@ struct ReplyWaiter {
   std::int64_t id{0};
   bool got{false};
   magvec_lcm::command_reply reply;
-  void on_reply(const lcm::ReceiveBuffer*, const std::string&,
-                const magvec_lcm::command_reply* r) {
+  void on_reply(const lcm::ReceiveBuffer*, const std::string&, const magvec_lcm::command_reply* r) {
     if (r->request_id != id) return;
     reply = *r;
     got = true;
@@ -42,7 +41,8 @@ void run(const CtlOptions& o) {
   if (!l.good()) throw CommandExit(5, "LCM provider " + o.url + " is not available");
   ReplyWaiter w;
   std::random_device rd;
-  w.id = static_cast<std::int64_t>((static_cast<std::uint64_t>(rd()) << 31) ^ rd()) & 0x7FFFFFFFFFFF;
+  w.id =
+      static_cast<std::int64_t>((static_cast<std::uint64_t>(rd()) << 31) ^ rd()) & 0x7FFFFFFFFFFF;
   lcm::Subscription* sub = l.subscribe(o.reply_channel, &ReplyWaiter::on_reply, &w);
   (void)sub;
   magvec_lcm::command c;
@@ -70,8 +70,8 @@ void run(const CtlOptions& o) {
   const auto& s = r.state;
   std::cout << (r.ok ? "ok: " : "refused: ") << r.message << "\n";
   std::cout << "calibration: " << s.calibrator << ", state " << s.state << ", progress "
-            << std::setprecision(3) << s.progress << ", cal_id " << s.cal_id << ", persisted cal_id "
-            << s.persisted_cal_id;
+            << std::setprecision(3) << s.progress << ", cal_id " << s.cal_id
+            << ", persisted cal_id " << s.persisted_cal_id;
   if (s.state == "failed") std::cout << ", failure " << s.failure << " " << s.solver_reason;
   std::cout << ", validation rms " << s.validation_rms_nT << " nT\n";
   if (!r.ok) throw CommandExit(3, "");

@@ -29,8 +29,8 @@ struct ReplayOptions {
 void run(const ReplayOptions& o) {
   hil::CsvRecordSink sink(o.out, {"magvec replay --lcm-log " + o.log});
   std::optional<hil::CsvRecordSink> logged;
-  if (!o.logged_out.empty()) logged.emplace(o.logged_out, std::vector<std::string>{
-                                                              "live outputs recorded in " + o.log});
+  if (!o.logged_out.empty())
+    logged.emplace(o.logged_out, std::vector<std::string>{"live outputs recorded in " + o.log});
   daemon::ReplayResult r;
   try {
     r = daemon::replay_log(o.log, sink, logged ? &*logged : nullptr, o.pipeline_channel);
@@ -40,20 +40,19 @@ void run(const ReplayOptions& o) {
   sink.commit();
   if (logged) logged->commit();
   std::cout << "magvec replay: " << o.log << ": " << r.log_events << " events, " << r.sessions
-            << " session(s), " << r.mag_samples << " magnetometer samples, "
-            << r.attitude_samples << " attitude samples, " << r.pipeline_events
-            << " pipeline events -> " << r.records << " records -> " << o.out << "\n";
+            << " session(s), " << r.mag_samples << " magnetometer samples, " << r.attitude_samples
+            << " attitude samples, " << r.pipeline_events << " pipeline events -> " << r.records
+            << " records -> " << o.out << "\n";
   if (r.decode_errors != 0 || r.skipped_before_session != 0)
     std::cout << "  decode errors " << r.decode_errors << ", samples before the first session "
               << r.skipped_before_session << "\n";
   if (r.have_status) {
     const auto& s = r.final_status;
     std::cout << "  calibration: " << s.calibrator << ", state " << core::cal_state_name(s.state)
-              << ", cal_id " << s.cal_id << ", validation rms " << s.validation_rms_nT
-              << " nT\n";
+              << ", cal_id " << s.cal_id << ", validation rms " << s.validation_rms_nT << " nT\n";
   }
-  const bool identical = r.logged_records == r.records && r.compared == r.records &&
-                         r.mismatches == 0;
+  const bool identical =
+      r.logged_records == r.records && r.compared == r.records && r.mismatches == 0;
   std::cout << "  live outputs in the log: " << r.logged_records << ", compared " << r.compared
             << ", differing " << r.mismatches << " -> "
             << (identical ? "bit-identical" : "NOT identical") << "\n";
@@ -66,7 +65,8 @@ void run(const ReplayOptions& o) {
 void register_replay(CLI::App& app) {
   auto opt = std::make_shared<ReplayOptions>();
   CLI::App* sub = app.add_subcommand(
-      "replay", "Re-run the sensor loop over a magvecd LCM log (deterministic, as fast as possible)");
+      "replay",
+      "Re-run the sensor loop over a magvecd LCM log (deterministic, as fast as possible)");
   sub->add_option("--lcm-log", opt->log, "LCM log recorded from magvecd (lcm-logger)")
       ->required()
       ->check(CLI::ExistingFile);

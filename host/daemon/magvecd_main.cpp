@@ -19,6 +19,8 @@
 #include <sys/stat.h>
 #include <systemd/sd-daemon.h>
 
+#include <spdlog/sinks/stdout_sinks.h>
+#include <spdlog/spdlog.h>
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <cerrno>
@@ -27,11 +29,9 @@
 #include <cstring>
 #include <filesystem>
 #include <functional>
-#include <limits>
 #include <lcm/lcm-cpp.hpp>
+#include <limits>
 #include <memory>
-#include <spdlog/sinks/stdout_sinks.h>
-#include <spdlog/spdlog.h>
 #include <string>
 
 #include "calibration/calibration_file.hpp"
@@ -266,8 +266,8 @@ class RealDevices final : public Devices {
       ads_ = std::make_unique<drivers::Ads131Fluxgate>(*spi_, *drdy_, m.adc);
       const hal::Status s = ads_->init();
       if (s != hal::Status::kOk)
-        throw Fatal(kExitDevice, "ADS131M04 on " + m.spi_device + " did not initialise: " +
-                                     hal::to_string(s));
+        throw Fatal(kExitDevice,
+                    "ADS131M04 on " + m.spi_device + " did not initialise: " + hal::to_string(s));
       mag_ = ads_.get();
     } else {
       drivers::SerialConfig sc;
@@ -283,9 +283,9 @@ class RealDevices final : public Devices {
     }
     drivers::SocketCanConfig cc;
     cc.interface = c.ins.can_interface;
-    for (const std::uint32_t id : {c.ins.ids.status_01, c.ins.ids.status_03, c.ins.ids.ekf_info,
-                                   c.ins.ids.ekf_quat, c.ins.ids.ekf_euler,
-                                   c.ins.ids.ekf_orientation_acc}) {
+    for (const std::uint32_t id :
+         {c.ins.ids.status_01, c.ins.ids.status_03, c.ins.ids.ekf_info, c.ins.ids.ekf_quat,
+          c.ins.ids.ekf_euler, c.ins.ids.ekf_orientation_acc}) {
       drivers::CanFilterSpec f;
       f.id = id;
       f.mask = 0x7FF;
@@ -378,7 +378,8 @@ class Daemon final : public EventHandler {
   Config load_config() {
     const std::string text =
         opt_.config_path.empty() ? default_config_text() : read_config_text(opt_.config_path);
-    Config c = parse_config(text, opt_.config_path.empty() ? "<embedded default>" : opt_.config_path);
+    Config c =
+        parse_config(text, opt_.config_path.empty() ? "<embedded default>" : opt_.config_path);
     // Command-line overrides are applied to the text too, so the logged session configuration
     // is exactly what the pipeline ran with.
     config_text_ = text;
@@ -468,8 +469,8 @@ class Daemon final : public EventHandler {
     std::error_code ec;
     std::filesystem::create_directories(c.daemon.state_dir, ec);
     if (ec || !std::filesystem::is_directory(c.daemon.state_dir))
-      throw Fatal(kExitConfig, "state directory " + c.daemon.state_dir +
-                                   " cannot be created: " + ec.message());
+      throw Fatal(kExitConfig,
+                  "state directory " + c.daemon.state_dir + " cannot be created: " + ec.message());
   }
 
   void run_session(const Config& config, bool first) {
@@ -677,9 +678,9 @@ class Daemon final : public EventHandler {
         r.message = "calibration " + std::to_string(st.cal_id) + " is already persisted";
       } else {
         r.ok = persist(st, "accept command");
-        r.message = r.ok ? "calibration " + std::to_string(st.cal_id) + " persisted to " +
-                               cal_path(config_)
-                         : "persisting failed (see the daemon log)";
+        r.message =
+            r.ok ? "calibration " + std::to_string(st.cal_id) + " persisted to " + cal_path(config_)
+                 : "persisting failed (see the daemon log)";
       }
     } else if (c == "revert") {
       const core::SensorModel<double> identity;

@@ -1,11 +1,11 @@
 // magvecd TOML configuration; see config.hpp.
 #include "magvec/host/daemon/config.hpp"
 
+#include <toml++/toml.h>
 #include <cmath>
 #include <fstream>
 #include <set>
 #include <sstream>
-#include <toml++/toml.h>
 
 namespace magvec::host::daemon {
 namespace {

@@ -153,6 +153,8 @@ sleep 0.6
 check "SIGHUP: configuration reloaded, new session" grep -q "configuration reloaded" "$W/run2.err"
 "$MAGVEC" ctl revert --lcm-url "$URL" >"$W/ctl_revert.out" 2>&1
 check "ctl revert answers" grep -q "ok: reverted to the persisted calibration 1" "$W/ctl_revert.out"
+"$MAGVEC" ctl accept --lcm-url "$URL" >"$W/ctl_accept.out" 2>&1
+check "ctl accept answers (already persisted)" grep -q "ok: calibration 1 is already persisted" "$W/ctl_accept.out"
 stop_daemon "$D"
 stop_logger
 check "second SIGTERM exits 0 within 1 s ($STOP_MS ms)" [ "$STOP_RC" -eq 0 ] && [ "$STOP_MS" -lt 1000 ]
@@ -170,16 +172,16 @@ expect_exit() {  # name expected_code message_regex command...
   shift 3
   "$@" >"$W/$name.out" 2>&1
   local rc=$?
-  echo "$name: exit $rc: $(grep -E "$re" "$W/$name.out" | head -1)"
+  echo "$name: exit $rc: $(grep -E -e "$re" "$W/$name.out" | head -1)"
   check "$name: exit code $code (got $rc)" [ "$rc" -eq "$code" ]
-  check "$name: clear message" grep -Eq "$re" "$W/$name.out"
+  check "$name: clear message" grep -Eq -e "$re" "$W/$name.out"
   check "$name: last good calibration untouched" cmp -s "$STATE/cal.json" "$W/good_cal.json"
 }
 printf '[calibration]\nmode = 42\n' >"$W/bad.toml"
 expect_exit corrupt_config 2 "configuration error: .*calibration.mode" \
   "$MAGVECD" --config "$W/bad.toml" --sim --state-dir "$STATE"
 printf '[daemon\nstate_dir = \n' >"$W/syntax.toml"
-expect_exit syntax_config 2 "configuration error: .*syntax.toml:1" \
+expect_exit syntax_config 2 "configuration error: .*syntax.toml:[0-9]+:[0-9]+: " \
   "$MAGVECD" --config "$W/syntax.toml" --sim --state-dir "$STATE"
 expect_exit bad_usage 2 "--bogus" "$MAGVECD" --bogus
 sed "s|^\[devices.magnetometer\]|[devices.magnetometer]\nspi_device = \"$W/no-such-spidev\"|" \

@@ -156,7 +156,10 @@ TEST_F(LcmTypes, HealthRoundTrip) {
 
 TEST_F(LcmTypes, PipelineEventsRoundTrip) {
   const auto s = round_trip(lcm_, session_start_event(1, "[calibration]\nmode = \"ekf\"\n"), "T_P");
-  EXPECT_EQ(s.kind, static_cast<std::int8_t>(magvec_lcm::pipeline_event::SESSION_START));  // copy: the constant has no definition
+  EXPECT_EQ(
+      s.kind,
+      static_cast<std::int8_t>(
+          magvec_lcm::pipeline_event::SESSION_START));  // copy: the constant has no definition
   EXPECT_EQ(s.sequence, 1);
   EXPECT_EQ(s.config_toml, "[calibration]\nmode = \"ekf\"\n");
   core::SensorModel<double> m;
@@ -164,14 +167,19 @@ TEST_F(LcmTypes, PipelineEventsRoundTrip) {
   m.o = core::Vec3<double>(100.5, -20.25, 3.0);
   m.rm = core::Quat<double>(0.99, 0.01, -0.02, 0.03).normalized();
   const auto a = round_trip(lcm_, set_active_event(2, m, 5), "T_P");
-  EXPECT_EQ(a.kind, static_cast<std::int8_t>(magvec_lcm::pipeline_event::SET_ACTIVE));  // copy: the constant has no definition
+  EXPECT_EQ(a.kind,
+            static_cast<std::int8_t>(
+                magvec_lcm::pipeline_event::SET_ACTIVE));  // copy: the constant has no definition
   EXPECT_EQ(a.cal_id, 5);
   const core::SensorModel<double> back = model_from_arrays(a.w, a.o_nT, a.rm_quat);
   EXPECT_EQ(back.w, m.w);
   EXPECT_EQ(back.o, m.o);
   EXPECT_EQ(back.rm.coeffs(), m.rm.coeffs());
   const auto st = round_trip(lcm_, start_calibration_event(3), "T_P");
-  EXPECT_EQ(st.kind, static_cast<std::int8_t>(magvec_lcm::pipeline_event::START_CALIBRATION));  // copy: the constant has no definition
+  EXPECT_EQ(
+      st.kind,
+      static_cast<std::int8_t>(
+          magvec_lcm::pipeline_event::START_CALIBRATION));  // copy: the constant has no definition
   EXPECT_EQ(st.sequence, 3);
 }
 

@@ -44,7 +44,8 @@ class Pipeline {
                                             double f_ref_nT) noexcept = 0;
   virtual void on_read_error() noexcept = 0;
   virtual void start_calibration() noexcept = 0;
-  virtual void set_active(const core::SensorModel<double>& model, std::uint32_t cal_id) noexcept = 0;
+  virtual void set_active(const core::SensorModel<double>& model,
+                          std::uint32_t cal_id) noexcept = 0;
 
   virtual CalibrationStatus status() const = 0;
   virtual core::CalState state() const noexcept = 0;  // cheap: for change detection

@@ -490,13 +490,18 @@ class Daemon final : public EventHandler {
       d->wait = wait;
       devices = std::move(d);
     }
-    // Carry the active calibration over a reload.
+    // Carry the active calibration over a reload; a calibration in progress starts again (its
+    // collected data belong to the old session and configuration).
     Persisted carried;
+    bool restart_calibration = false;
     if (!first && ep_.pipeline() != nullptr) {
       const CalibrationStatus st = ep_.pipeline()->status();
       carried.present = st.cal_id != 0;
       carried.model = st.active;
       carried.cal_id = st.cal_id;
+      restart_calibration = st.state == core::CalState::kCollecting ||
+                            st.state == core::CalState::kSolving ||
+                            st.state == core::CalState::kValidating;
     }
     lcm_ = std::move(l);
     sink_.attach(lcm_.get(), config.lcm.channels.output);
@@ -510,8 +515,11 @@ class Daemon final : public EventHandler {
     event(session_start_event(++sequence_, config_text_));
     const Persisted& install = first ? persisted_ : carried;
     if (install.present) event(set_active_event(++sequence_, install.model, install.cal_id));
-    if (first && config.calibration.start_on_boot && config.calibration.mode != "none")
+    if (config.calibration.mode != "none" &&
+        ((first && config.calibration.start_on_boot) || restart_calibration)) {
+      if (restart_calibration) spdlog::info("calibration in progress restarted after the reload");
       event(start_calibration_event(++sequence_));
+    }
     applied_seen_ = ep_.pipeline()->health().calibrations_applied;
 
     sd_notify(0, first ? "READY=1\nSTATUS=running" : "READY=1\nSTATUS=running (reloaded)");

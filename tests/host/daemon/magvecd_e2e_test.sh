@@ -140,7 +140,19 @@ check "file:// replay into a subscriber gives the same outputs" cmp -s <(data_ro
 
 # ------------------------------------------------------------------ 3. restart, SIGHUP
 start_logger "$W/run2.lcm"
-"$MAGVECD" --config "$W/magvecd.toml" --sim --state-dir "$STATE" 2>"$W/run2.err" &
+# systemd's side of sd_notify: a datagram socket recording every notification.
+python3 -c '
+import socket, sys
+s = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+s.bind(sys.argv[1])
+with open(sys.argv[2], "w", buffering=1) as out:
+    while True:
+        out.write(s.recv(4096).decode().replace("\n", " ") + "\n")
+' "$W/notify.sock" "$W/notify.log" &
+PIDS+=("$!")
+for _ in $(seq 1 50); do [ -S "$W/notify.sock" ] && break; sleep 0.02; done
+NOTIFY_SOCKET="$W/notify.sock" WATCHDOG_USEC=200000 \
+  "$MAGVECD" --config "$W/magvecd.toml" --sim --state-dir "$STATE" 2>"$W/run2.err" &
 D=$!
 PIDS+=("$D")
 sleep 0.6
@@ -151,6 +163,7 @@ check "restart: active cal_id 1 before any new calibration" grep -q "cal_id 1, p
 kill -HUP "$D"
 sleep 0.6
 check "SIGHUP: configuration reloaded, new session" grep -q "configuration reloaded" "$W/run2.err"
+check "SIGHUP: the calibration in progress starts again" grep -q "calibration in progress restarted" "$W/run2.err"
 "$MAGVEC" ctl revert --lcm-url "$URL" >"$W/ctl_revert.out" 2>&1
 check "ctl revert answers" grep -q "ok: reverted to the persisted calibration 1" "$W/ctl_revert.out"
 "$MAGVEC" ctl accept --lcm-url "$URL" >"$W/ctl_accept.out" 2>&1
@@ -158,12 +171,19 @@ check "ctl accept answers (already persisted)" grep -q "ok: calibration 1 is alr
 stop_daemon "$D"
 stop_logger
 check "second SIGTERM exits 0 within 1 s ($STOP_MS ms)" [ "$STOP_RC" -eq 0 ] && [ "$STOP_MS" -lt 1000 ]
+cat "$W/notify.log" | sort | uniq -c | sort -rn | head -8
+check "sd_notify READY=1 (start and after the reload)" [ "$(grep -c 'READY=1' "$W/notify.log")" -eq 2 ]
+check "sd_notify RELOADING=1 on SIGHUP" grep -q "RELOADING=1" "$W/notify.log"
+check "sd_notify WATCHDOG=1 at half of WATCHDOG_USEC (>= 8 in ~1.2 s)" [ "$(grep -c 'WATCHDOG=1' "$W/notify.log")" -ge 8 ]
+check "sd_notify STATUS= with the calibration state" grep -q "STATUS=collecting, cal_id 1" "$W/notify.log"
+check "sd_notify STOPPING=1" grep -q "STOPPING=1" "$W/notify.log"
 check "calibration file unchanged by a run without a new calibration" cmp -s "$STATE/cal.json" "$W/good_cal.json"
 "$MAGVEC" replay --lcm-log "$W/run2.lcm" --out "$W/replay2.csv" --check >"$W/replay2.out" 2>&1
 RP_RC=$?
 cat "$W/replay2.out"
 check "replay across SIGHUP (2 sessions) bit-identical (rc $RP_RC)" [ "$RP_RC" -eq 0 ]
 check "replay saw both sessions" grep -q " 2 session(s)" "$W/replay2.out"
+check "replay: calibrating again after the reload" grep -q "state collecting, cal_id 1" "$W/replay2.out"
 check "replayed outputs start with cal_id 1" awk -F, '/^#/ { next } !hdr { hdr = 1; next } { exit !($13 == 1) }' "$W/replay2.csv"
 
 # ------------------------------------------------------------------ 4. error exit codes

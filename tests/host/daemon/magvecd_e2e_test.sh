@@ -186,6 +186,31 @@ check "replay saw both sessions" grep -q " 2 session(s)" "$W/replay2.out"
 check "replay: calibrating again after the reload" grep -q "state collecting, cal_id 1" "$W/replay2.out"
 check "replayed outputs start with cal_id 1" awk -F, '/^#/ { next } !hdr { hdr = 1; next } { exit !($13 == 1) }' "$W/replay2.csv"
 
+# ------------------------------------------------------------------ 3b. manual start and accept
+# auto_accept = false, start_on_boot = false: nothing calibrates until `ctl start`, nothing is
+# persisted until `ctl accept`.
+sed -e 's/^mode = "li"/mode = "li"\nstart_on_boot = false\nauto_accept = false/' \
+  "$W/magvecd.toml" >"$W/manual.toml"
+"$MAGVECD" --config "$W/manual.toml" --sim --state-dir "$W/state_manual" 2>"$W/run3.err" &
+D=$!
+PIDS+=("$D")
+sleep 0.5
+"$MAGVEC" ctl accept --lcm-url "$URL" >"$W/ctl_accept0.out" 2>&1
+ACC_RC=$?
+check "ctl accept with nothing to accept is refused (exit 3, got $ACC_RC)" [ "$ACC_RC" -eq 3 ]
+check "ctl accept refusal message" grep -q "refused: no calibration is active" "$W/ctl_accept0.out"
+check "idle without start_on_boot" grep -q "state idle" "$W/ctl_accept0.out"
+"$MAGVEC" ctl start --lcm-url "$URL" >"$W/ctl_start.out" 2>&1
+check "ctl start answers" grep -q "ok: calibration started (li)" "$W/ctl_start.out"
+for _ in $(seq 1 60); do grep -q "calibration applied: cal_id 1" "$W/run3.err" && break; sleep 0.1; done
+check "calibration applied after ctl start" grep -q "calibration applied: cal_id 1" "$W/run3.err"
+check "not persisted without accept" [ ! -e "$W/state_manual/cal.json" ]
+"$MAGVEC" ctl accept --lcm-url "$URL" >"$W/ctl_accept1.out" 2>&1
+check "ctl accept persists" grep -q "ok: calibration 1 persisted to" "$W/ctl_accept1.out"
+check "accepted calibration file written" grep -q '"cal_id"' "$W/state_manual/cal.json"
+stop_daemon "$D"
+check "third SIGTERM exits 0 within 1 s ($STOP_MS ms)" [ "$STOP_RC" -eq 0 ] && [ "$STOP_MS" -lt 1000 ]
+
 # ------------------------------------------------------------------ 4. error exit codes
 expect_exit() {  # name expected_code message_regex command...
   local name=$1 code=$2 re=$3

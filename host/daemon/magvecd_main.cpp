@@ -171,8 +171,9 @@ struct EventHandler {
 class Devices {
  public:
   virtual ~Devices() = default;
-  // Produces the events due now, waiting at most max_wait_us (during which `idle(us)` is called
-  // for pacing so LCM commands are served). false when the source has ended (scenario over).
+  // Produces the events due now, waiting at most max_wait_us; the waiting is done through the
+  // `wait` callback (LCM handleTimeout) so commands are served meanwhile. false when the source
+  // has ended (scenario over).
   virtual bool poll(EventHandler& h, std::uint32_t max_wait_us) = 0;
   virtual const hal::MagCounters& mag_counters() const = 0;
   virtual const hal::AttitudeCounters& attitude_counters() const = 0;
@@ -406,12 +407,10 @@ class Daemon final : public EventHandler {
     persisted_ = load_persisted(config);
     realtime_hints(config);
     start_us_ = mono_us();
-    bool first = true;
-    while (g_stop == 0) {
-      run_session(config, first);
-      first = false;
+    open_session(config, true);
+    while (true) {
+      loop_session();  // until SIGTERM/SIGINT or SIGHUP
       if (g_stop != 0) break;
-      // SIGHUP: reload.
       g_reload = 0;
       sd_notify(0, "RELOADING=1");
       try {
@@ -423,11 +422,17 @@ class Daemon final : public EventHandler {
         config = next;
         set_log_level(config);
         spdlog::info("configuration reloaded: starting a new session");
+        open_session(config, false);
       } catch (const ConfigError& e) {
+        // The running session goes on untouched (no new session, no device re-open).
         spdlog::error("reload refused, keeping the running configuration: {}", e.what());
-        config_text_ = last_session_text_;
+        sd_notify(0, "READY=1\nSTATUS=reload refused: invalid configuration");
       }
     }
+    spdlog::info("stopping ({} samples)", mag_events_);
+    shutdown_persist();
+    publish_status();
+    publish_health();
     sd_notify(0, "STOPPING=1");
     return kExitOk;
   }
@@ -473,7 +478,8 @@ class Daemon final : public EventHandler {
                   "state directory " + c.daemon.state_dir + " cannot be created: " + ec.message());
   }
 
-  void run_session(const Config& config, bool first) {
+  // Opens LCM and the devices of `config` and starts a session (pipeline events published).
+  void open_session(const Config& config, bool first) {
     config_ = config;
     auto l = std::make_unique<lcm::LCM>(config.lcm.url);
     if (!l->good()) throw Fatal(kExitLcm, "LCM provider " + config.lcm.url + " is not available");
@@ -509,7 +515,6 @@ class Daemon final : public EventHandler {
     devices_ = std::move(devices);
     spdlog::info("devices: {}; LCM {}", devices_->describe(), config.lcm.url);
 
-    last_session_text_ = config_text_;
     // The text as read: the command-line overrides (state directory, LCM URL) do not reach the
     // pipeline.
     event(session_start_event(++sequence_, config_text_));
@@ -523,11 +528,15 @@ class Daemon final : public EventHandler {
     applied_seen_ = ep_.pipeline()->health().calibrations_applied;
 
     sd_notify(0, first ? "READY=1\nSTATUS=running" : "READY=1\nSTATUS=running (reloaded)");
+  }
+
+  // Runs the open session until a signal flag is set.
+  void loop_session() {
     std::uint64_t watchdog_us = 0;
     if (sd_watchdog_enabled(0, &watchdog_us) <= 0) watchdog_us = 0;
     std::uint64_t next_watchdog = 0, next_health = 0, next_status = 0;
-    const auto health_us = static_cast<std::uint64_t>(config.daemon.health_period_s * 1e6);
-    const auto status_us = static_cast<std::uint64_t>(config.daemon.status_period_s * 1e6);
+    const auto health_us = static_cast<std::uint64_t>(config_.daemon.health_period_s * 1e6);
+    const auto status_us = static_cast<std::uint64_t>(config_.daemon.status_period_s * 1e6);
 
     while (g_stop == 0 && g_reload == 0) {
       devices_->poll(*this, 20'000);
@@ -549,12 +558,6 @@ class Daemon final : public EventHandler {
         publish_status();
         next_status = now + status_us;
       }
-    }
-    if (g_stop != 0) {
-      spdlog::info("stopping ({} samples)", mag_events_);
-      shutdown_persist();
-      publish_status();
-      publish_health();
     }
   }
 
@@ -713,7 +716,6 @@ class Daemon final : public EventHandler {
 
   Options opt_;
   std::string config_text_;
-  std::string last_session_text_;
   Config config_{};
   LcmRecordSink sink_;
   EventPipeline ep_;

@@ -151,8 +151,9 @@ with open(sys.argv[2], "w", buffering=1) as out:
 ' "$W/notify.sock" "$W/notify.log" &
 PIDS+=("$!")
 for _ in $(seq 1 50); do [ -S "$W/notify.sock" ] && break; sleep 0.02; done
+cp "$W/magvecd.toml" "$W/run2.toml"
 NOTIFY_SOCKET="$W/notify.sock" WATCHDOG_USEC=200000 \
-  "$MAGVECD" --config "$W/magvecd.toml" --sim --state-dir "$STATE" 2>"$W/run2.err" &
+  "$MAGVECD" --config "$W/run2.toml" --sim --state-dir "$STATE" 2>"$W/run2.err" &
 D=$!
 PIDS+=("$D")
 sleep 0.6
@@ -168,11 +169,18 @@ check "SIGHUP: the calibration in progress starts again" grep -q "calibration in
 check "ctl revert answers" grep -q "ok: reverted to the persisted calibration 1" "$W/ctl_revert.out"
 "$MAGVEC" ctl accept --lcm-url "$URL" >"$W/ctl_accept.out" 2>&1
 check "ctl accept answers (already persisted)" grep -q "ok: calibration 1 is already persisted" "$W/ctl_accept.out"
+printf '[calibration]\nmode = "magic"\n' >"$W/run2.toml"
+kill -HUP "$D"
+sleep 0.4
+check "SIGHUP with an invalid file: reload refused, old configuration kept" \
+  grep -q "reload refused, keeping the running configuration: .*calibration.mode" "$W/run2.err"
+"$MAGVEC" ctl status --lcm-url "$URL" >"$W/ctl_status3.out" 2>&1
+check "still running after a refused reload" grep -q "^ok: running" "$W/ctl_status3.out"
 stop_daemon "$D"
 stop_logger
 check "second SIGTERM exits 0 within 1 s ($STOP_MS ms)" [ "$STOP_RC" -eq 0 ] && [ "$STOP_MS" -lt 1000 ]
 cat "$W/notify.log" | sort | uniq -c | sort -rn | head -8
-check "sd_notify READY=1 (start and after the reload)" [ "$(grep -c 'READY=1' "$W/notify.log")" -eq 2 ]
+check "sd_notify READY=1 (start, reload, refused reload)" [ "$(grep -c "READY=1" "$W/notify.log")" -eq 3 ]
 check "sd_notify RELOADING=1 on SIGHUP" grep -q "RELOADING=1" "$W/notify.log"
 check "sd_notify WATCHDOG=1 at half of WATCHDOG_USEC (>= 8 in ~1.2 s)" [ "$(grep -c 'WATCHDOG=1' "$W/notify.log")" -ge 8 ]
 check "sd_notify STATUS= with the calibration state" grep -q "STATUS=collecting, cal_id 1" "$W/notify.log"
@@ -183,7 +191,7 @@ RP_RC=$?
 cat "$W/replay2.out"
 check "replay across SIGHUP (2 sessions) bit-identical (rc $RP_RC)" [ "$RP_RC" -eq 0 ]
 check "replay saw both sessions" grep -q " 2 session(s)" "$W/replay2.out"
-check "replay: calibrating again after the reload" grep -q "state collecting, cal_id 1" "$W/replay2.out"
+check "replay: calibrating again after the reload" grep -Eq "state (collecting|solving|validating), cal_id 1" "$W/replay2.out"
 check "replayed outputs start with cal_id 1" awk -F, '/^#/ { next } !hdr { hdr = 1; next } { exit !($13 == 1) }' "$W/replay2.csv"
 
 # ------------------------------------------------------------------ 3b. manual start and accept
@@ -233,6 +241,8 @@ sed "s|^\[devices.magnetometer\]|[devices.magnetometer]\nspi_device = \"$W/no-su
   "$W/magvecd.toml" >"$W/real.toml"
 expect_exit missing_device 3 "magnetometer SPI: .*no-such-spidev.*No such file" \
   "$MAGVECD" --config "$W/real.toml" --state-dir "$STATE"
+expect_exit lcm_unavailable 5 "LCM provider nosuchprovider://x is not available" \
+  "$MAGVECD" --config "$W/magvecd.toml" --sim --state-dir "$STATE" --lcm-url "nosuchprovider://x"
 mkdir -p "$W/state_corrupt"
 printf '{"schema": "magvec-calibration/1", "W": [[1, 0' >"$W/state_corrupt/cal.json"
 cp "$W/state_corrupt/cal.json" "$W/corrupt_copy.json"

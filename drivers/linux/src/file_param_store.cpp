@@ -3,6 +3,7 @@
 #include "magvec/drivers/linux/file_param_store.hpp"
 
 #include <fcntl.h>
+#include <sys/file.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -28,26 +29,26 @@ std::unique_ptr<FileParamStore> FileParamStore::open(const std::string& path, st
                                                      OsError* err) {
   const std::string name = "param file " + path;
   if (path.empty() || path.back() == '/') {
-    report(err, make_error(name, "configure", "the path must name a file", EINVAL));
+    report_error(err, make_error(name, "configure", "the path must name a file", EINVAL));
     return nullptr;
   }
   if (max_blob == 0 || max_blob > kMaxBlobLimit) {
-    report(err,
-           make_error(name, "configure",
-                      "max_blob must be 1.." + std::to_string(kMaxBlobLimit) + " bytes", EINVAL));
+    report_error(
+        err, make_error(name, "configure",
+                        "max_blob must be 1.." + std::to_string(kMaxBlobLimit) + " bytes", EINVAL));
     return nullptr;
   }
   const std::string dir = directory_of(path);
   const int dir_fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
   if (dir_fd < 0) {
-    report(err, make_os_error(name, "open directory " + dir, errno));
+    report_error(err, make_os_error(name, "open directory " + dir, errno));
     return nullptr;
   }
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0 && errno != ENOENT) {
     const int e = errno;
     ::close(dir_fd);
-    report(err, make_os_error(name, "open", e));
+    report_error(err, make_os_error(name, "open", e));
     return nullptr;
   }
   if (fd >= 0) ::close(fd);
@@ -218,6 +219,18 @@ bool FileParamStore::preserve_corrupt() noexcept {
 
 hal::Status FileParamStore::store(std::span<const std::uint8_t> blob) noexcept {
   if (blob.size() > max_blob_) return hal::Status::kOverflow;
+  // Serialises stores of several processes on the same directory (the temp names are shared).
+  struct DirLock {
+    int fd;
+    ~DirLock() { ::flock(fd, LOCK_UN); }
+  };
+  while (::flock(dir_fd_, LOCK_EX) < 0) {
+    if (errno != EINTR) {
+      assign_os_error(last_error_, name_, "flock directory", errno);
+      return hal::Status::kBusError;
+    }
+  }
+  const DirLock lock{dir_fd_};
   FileInfo cur = inspect(path_);
   if (cur.state == FileState::kIoError) return hal::Status::kBusError;
   std::uint32_t sequence = 1;

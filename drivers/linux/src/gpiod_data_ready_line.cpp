@@ -23,22 +23,23 @@ std::unique_ptr<GpiodDataReadyLine> GpiodDataReadyLine::open(const GpiodConfig& 
   gpiod_chip* chip = ::gpiod_chip_open_lookup(config.chip.c_str());
   if (chip == nullptr) {
     const int e = errno != 0 ? errno : ENOENT;
-    report(err, make_os_error(name, "open chip (no such GPIO chip?)", e));
+    report_error(err, make_os_error(name, "open chip (no such GPIO chip?)", e));
     return nullptr;
   }
   const unsigned n_lines = ::gpiod_chip_num_lines(chip);
   if (config.line >= n_lines) {
     ::gpiod_chip_close(chip);
-    report(err,
-           make_error(name, "get line",
-                      "no such line (the chip has " + std::to_string(n_lines) + " lines)", EINVAL));
+    report_error(
+        err,
+        make_error(name, "get line",
+                   "no such line (the chip has " + std::to_string(n_lines) + " lines)", EINVAL));
     return nullptr;
   }
   gpiod_line* line = ::gpiod_chip_get_line(chip, config.line);
   if (line == nullptr) {
     const int e = errno;
     ::gpiod_chip_close(chip);
-    report(err, make_os_error(name, "get line", e));
+    report_error(err, make_os_error(name, "get line", e));
     return nullptr;
   }
   int rc = 0;
@@ -52,10 +53,11 @@ std::unique_ptr<GpiodDataReadyLine> GpiodDataReadyLine::open(const GpiodConfig& 
   if (rc < 0) {
     const int e = errno;
     ::gpiod_chip_close(chip);
-    report(err, make_os_error(name,
-                              e == EBUSY ? "request edge events (line used by another consumer?)"
-                                         : "request edge events",
-                              e));
+    report_error(err,
+                 make_os_error(name,
+                               e == EBUSY ? "request edge events (line used by another consumer?)"
+                                          : "request edge events",
+                               e));
     return nullptr;
   }
   return std::unique_ptr<GpiodDataReadyLine>(new GpiodDataReadyLine(chip, line, config));

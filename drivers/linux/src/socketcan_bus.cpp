@@ -40,7 +40,8 @@ std::string hex(std::uint32_t v) {
 std::unique_ptr<SocketCanBus> SocketCanBus::open(const SocketCanConfig& config, OsError* err) {
   const std::string name = "socketcan " + config.interface;
   if (config.interface.empty() || config.interface.size() >= IFNAMSIZ) {
-    report(err, make_error(name, "configure", "interface name must have 1..15 characters", EINVAL));
+    report_error(
+        err, make_error(name, "configure", "interface name must have 1..15 characters", EINVAL));
     return nullptr;
   }
   std::vector<can_filter> filters;
@@ -48,10 +49,11 @@ std::unique_ptr<SocketCanBus> SocketCanBus::open(const SocketCanConfig& config, 
   for (const CanFilterSpec& f : config.filters) {
     const std::uint32_t limit = f.extended ? kExtIdMask : kStdIdMask;
     if (f.id > limit || f.mask > limit) {
-      report(err, make_error(name, "configure",
-                             "filter id " + hex(f.id) + " / mask " + hex(f.mask) + " exceeds the " +
-                                 (f.extended ? "29" : "11") + "-bit identifier range",
-                             EINVAL));
+      report_error(
+          err, make_error(name, "configure",
+                          "filter id " + hex(f.id) + " / mask " + hex(f.mask) + " exceeds the " +
+                              (f.extended ? "29" : "11") + "-bit identifier range",
+                          EINVAL));
       return nullptr;
     }
     can_filter cf{};
@@ -65,15 +67,16 @@ std::unique_ptr<SocketCanBus> SocketCanBus::open(const SocketCanConfig& config, 
   const int fd = ::socket(PF_CAN, SOCK_RAW | SOCK_CLOEXEC | SOCK_NONBLOCK, CAN_RAW);
   if (fd < 0) {
     const int e = errno;
-    report(err, make_os_error(name,
-                              e == EAFNOSUPPORT ? "socket(AF_CAN) (kernel without CAN support?)"
-                                                : "socket(AF_CAN)",
-                              e));
+    report_error(err,
+                 make_os_error(name,
+                               e == EAFNOSUPPORT ? "socket(AF_CAN) (kernel without CAN support?)"
+                                                 : "socket(AF_CAN)",
+                               e));
     return nullptr;
   }
   auto fail = [&](const char* op, int e) {
     ::close(fd);
-    report(err, make_os_error(name, op, e));
+    report_error(err, make_os_error(name, op, e));
     return nullptr;
   };
   const unsigned index = ::if_nametoindex(config.interface.c_str());

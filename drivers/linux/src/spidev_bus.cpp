@@ -21,17 +21,17 @@ std::string device_name(const SpidevConfig& c) {
 std::unique_ptr<SpidevBus> SpidevBus::open(const SpidevConfig& config, OsError* err) {
   const std::string dev = device_name(config);
   if (config.mode > 3) {
-    report(err, make_error(dev, "configure", "SPI mode must be 0..3", EINVAL));
+    report_error(err, make_error(dev, "configure", "SPI mode must be 0..3", EINVAL));
     return nullptr;
   }
   if (config.speed_hz == 0 || config.bits_per_word == 0 || config.bits_per_word > 32) {
-    report(err,
-           make_error(dev, "configure", "speed_hz must be > 0 and bits_per_word 1..32", EINVAL));
+    report_error(
+        err, make_error(dev, "configure", "speed_hz must be > 0 and bits_per_word 1..32", EINVAL));
     return nullptr;
   }
   const int fd = ::open(config.device.c_str(), O_RDWR | O_CLOEXEC);
   if (fd < 0) {
-    report(err, make_os_error(dev, "open", errno));
+    report_error(err, make_os_error(dev, "open", errno));
     return nullptr;
   }
   std::uint8_t mode = config.mode;
@@ -48,7 +48,7 @@ std::unique_ptr<SpidevBus> SpidevBus::open(const SpidevConfig& config, OsError* 
   if (op != nullptr) {
     const int e = errno;
     ::close(fd);
-    report(err, make_os_error(dev, op, e));
+    report_error(err, make_os_error(dev, op, e));
     return nullptr;
   }
   return std::unique_ptr<SpidevBus>(new SpidevBus(fd, config));

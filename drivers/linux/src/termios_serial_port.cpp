@@ -117,7 +117,7 @@ std::unique_ptr<TermiosSerialPort> TermiosSerialPort::open(const SerialConfig& c
   OsError e;
   const int fd = open_tty(config, name, e);
   if (fd < 0) {
-    report(err, std::move(e));
+    report_error(err, std::move(e));
     return nullptr;
   }
   return std::unique_ptr<TermiosSerialPort>(new TermiosSerialPort(fd, config));

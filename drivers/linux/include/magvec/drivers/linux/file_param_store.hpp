@@ -16,6 +16,7 @@
 // path.prev: a damaged calibration is reported, never silently replaced by an older one
 // (load_previous() reads path.prev explicitly, e.g. for a revert). last_error() says why.
 // A corrupt `path` is never overwritten: store() first renames it to path.corrupt-N.
+// Concurrent store() calls of several processes are serialised by flock() on the directory.
 #pragma once
 
 #include <cstddef>

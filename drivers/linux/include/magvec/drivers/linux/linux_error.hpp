@@ -26,7 +26,7 @@ void assign_error(OsError& dst, std::string_view device, std::string_view operat
                   std::string_view detail, int error_number = 0) noexcept;
 
 // Stores `e` into *out when out is not null (the factories' optional error output).
-inline void report(OsError* out, OsError e) {
+inline void report_error(OsError* out, OsError e) {
   if (out != nullptr) *out = std::move(e);
 }
 

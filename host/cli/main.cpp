@@ -1,4 +1,4 @@
-// magvec: command-line front end (simulate, calibrate, apply, run, replay, report).
+// magvec: command-line front end (simulate, calibrate, apply, run, replay, ctl, report).
 // Subcommands register themselves (commands.hpp); errors end with a message and a non-zero exit.
 #include <CLI/CLI.hpp>
 #include <exception>
@@ -17,6 +17,8 @@ int main(int argc, char** argv) {
   magvec::host::cli::register_run(app);
   magvec::host::cli::register_report(app);
   magvec::host::cli::register_calibrate(app);
+  magvec::host::cli::register_replay(app);
+  magvec::host::cli::register_ctl(app);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

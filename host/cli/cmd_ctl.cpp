@@ -1,0 +1,97 @@
+// `magvec ctl start|accept|revert|status [--lcm-url URL]`: sends a command to magvecd over LCM
+// and prints its reply (magvec_lcm.command / command_reply). Exit 0 when the daemon accepted the
+// command, 3 when it refused it, 4 when no reply came within --timeout.
+#include <CLI/CLI.hpp>
+#include <chrono>
+#include <iomanip>
+#include <iostream>
+#include <lcm/lcm-cpp.hpp>
+#include <magvec_lcm/command.hpp>
+#include <magvec_lcm/command_reply.hpp>
+#include <memory>
+#include <random>
+#include <string>
+
+#include "commands.hpp"
+
+namespace magvec::host::cli {
+namespace {
+
+struct CtlOptions {
+  std::string command;
+  std::string url = "udpm://239.255.76.67:7667?ttl=0";
+  std::string command_channel = "MAGVEC_CMD";
+  std::string reply_channel = "MAGVEC_CMD_REPLY";
+  double timeout_s = 2.0;
+};
+
+struct ReplyWaiter {
+  std::int64_t id{0};
+  bool got{false};
+  magvec_lcm::command_reply reply;
+  void on_reply(const lcm::ReceiveBuffer*, const std::string&, const magvec_lcm::command_reply* r) {
+    if (r->request_id != id) return;
+    reply = *r;
+    got = true;
+  }
+};
+
+void run(const CtlOptions& o) {
+  lcm::LCM l(o.url);
+  if (!l.good()) throw CommandExit(5, "LCM provider " + o.url + " is not available");
+  ReplyWaiter w;
+  std::random_device rd;
+  w.id =
+      static_cast<std::int64_t>((static_cast<std::uint64_t>(rd()) << 31) ^ rd()) & 0x7FFFFFFFFFFF;
+  lcm::Subscription* sub = l.subscribe(o.reply_channel, &ReplyWaiter::on_reply, &w);
+  (void)sub;
+  magvec_lcm::command c;
+  c.request_id = w.id;
+  c.command = o.command;
+  using Clock = std::chrono::steady_clock;
+  const auto deadline = Clock::now() + std::chrono::duration<double>(o.timeout_s);
+  // One send; `status` (idempotent) is re-sent every 250 ms until answered, as a udpm datagram
+  // can be lost. The other commands are sent once so the daemon never executes them twice.
+  auto next_send = Clock::now();
+  bool sent = false;
+  while (!w.got && Clock::now() < deadline) {
+    if (!sent || (o.command == "status" && Clock::now() >= next_send)) {
+      if (l.publish(o.command_channel, &c) != 0)
+        throw CommandExit(5, "publishing on " + o.command_channel + " failed");
+      sent = true;
+      next_send = Clock::now() + std::chrono::milliseconds(250);
+    }
+    l.handleTimeout(50);
+  }
+  if (!w.got)
+    throw CommandExit(4, "no reply from magvecd on " + o.reply_channel + " within " +
+                             std::to_string(o.timeout_s) + " s (is it running on " + o.url + "?)");
+  const auto& r = w.reply;
+  const auto& s = r.state;
+  std::cout << (r.ok ? "ok: " : "refused: ") << r.message << "\n";
+  std::cout << "calibration: " << s.calibrator << ", state " << s.state << ", progress "
+            << std::setprecision(3) << s.progress << ", cal_id " << s.cal_id
+            << ", persisted cal_id " << s.persisted_cal_id;
+  if (s.state == "failed") std::cout << ", failure " << s.failure << " " << s.solver_reason;
+  std::cout << ", validation rms " << s.validation_rms_nT << " nT\n";
+  if (!r.ok) throw CommandExit(3, "");
+}
+
+}  // namespace
+
+void register_ctl(CLI::App& app) {
+  auto opt = std::make_shared<CtlOptions>();
+  CLI::App* sub = app.add_subcommand("ctl", "Send a command to magvecd over LCM");
+  sub->add_option("command", opt->command, "start | accept | revert | status")
+      ->required()
+      ->check(CLI::IsMember({"start", "accept", "revert", "status"}));
+  sub->add_option("--lcm-url", opt->url, "LCM URL of the daemon")->capture_default_str();
+  sub->add_option("--command-channel", opt->command_channel)->capture_default_str();
+  sub->add_option("--reply-channel", opt->reply_channel)->capture_default_str();
+  sub->add_option("--timeout", opt->timeout_s, "Seconds to wait for the reply")
+      ->check(CLI::Range(0.05, 60.0))
+      ->capture_default_str();
+  sub->callback([opt] { run(*opt); });
+}
+
+}  // namespace magvec::host::cli

@@ -1,0 +1,115 @@
+// magvecd configuration (TOML, parsed with toml++): devices, rates, CAN IDs, ADC transfer
+// coefficients, calibration mode and thresholds, LCM URL and channels, state directory.
+// The annotated example is host/daemon/magvecd.toml; default_config_text() is the embedded default
+// (the simulated rig), so `magvecd --sim` needs no file.
+// Everything the pipeline's output depends on is derived from the config *text*: the daemon
+// publishes that text in the SESSION_START pipeline event and `magvec replay` parses it with
+// parse_config(), so a replay builds exactly the live pipeline.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <limits>
+#include <stdexcept>
+#include <string>
+
+#include "magvec/drivers/ads131_fluxgate.hpp"
+#include "magvec/drivers/sbg_can.hpp"
+
+namespace magvec::host::daemon {
+
+class ConfigError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+struct LcmChannels {
+  std::string raw_mag{"MAGVEC_RAW_MAG"};
+  std::string attitude{"MAGVEC_ATTITUDE"};
+  std::string pipeline{"MAGVEC_PIPELINE"};
+  std::string output{"MAGVEC_OUTPUT"};
+  std::string cal_state{"MAGVEC_CAL_STATE"};
+  std::string health{"MAGVEC_HEALTH"};
+  std::string command{"MAGVEC_CMD"};
+  std::string reply{"MAGVEC_CMD_REPLY"};
+};
+
+struct MagnetometerConfig {
+  std::string link{"spi"};  // spi (ADS131M04 + DRDY) | serial (ASCII fluxgate)
+  double rate_hz{100};
+  std::string spi_device{"/dev/spidev0.0"};
+  std::uint32_t spi_speed_hz{4'000'000};
+  std::string drdy_chip{"/dev/gpiochip0"};
+  unsigned drdy_line{0};
+  std::string serial_device{"/dev/ttyUSB0"};
+  std::uint32_t serial_baud{115200};
+  std::uint32_t serial_reconnect_ms{1000};
+  std::uint32_t serial_latency_us{0};
+  // Fluxgate electronics 100 uT/V into the ADC at gain 1: +/-120 uT range (as `magvec run`).
+  drivers::Ads131FluxgateConfig adc{{0, 1, 2}, {1e5, 1e5, 1e5}, {0, 0, 0, 0}, 64};
+};
+
+struct InsConfig {
+  std::string can_interface{"can0"};
+  double rate_hz{100};
+  std::uint32_t latency_comp_us{500};  // subtracted from CAN receive times
+  bool require_attitude_valid{true};
+  drivers::sbg::CanIds ids{};
+};
+
+struct CalibrationConfig {
+  std::string mode{"li"};  // li | ekf | none
+  bool start_on_boot{true};
+  bool auto_accept{true};  // persist a calibration as soon as the loop validated and applied it
+  double noise_nT{0.3};
+  double attitude_noise_deg{0.015};
+  std::uint32_t validation_samples{200};
+  double validation_max_rms_factor{3};
+  double validation_min_rms_nT{1};
+  bool validate_against_active{true};
+  bool ekf_align{true};
+  std::uint32_t li_min_samples{300};  // li: kept (decimated) samples before solving
+  // Scalar reference |h| for real devices (nan: none; the simulated rig provides its own).
+  double reference_field_nT{std::numeric_limits<double>::quiet_NaN()};
+};
+
+struct SimConfig {
+  std::string scenario{"li2023"};  // li2023 (random attitudes) | survey
+  std::uint64_t seed{1};
+  std::uint32_t samples_per_attitude{10};
+};
+
+struct DaemonSection {
+  std::string state_dir{"/var/lib/magvecd"};
+  std::string log_level{"info"};
+  bool realtime{true};
+  int rt_priority{20};
+  double health_period_s{1.0};
+  double status_period_s{1.0};
+};
+
+struct LcmConfig {
+  std::string url{"udpm://239.255.76.67:7667?ttl=0"};
+  LcmChannels channels{};
+};
+
+struct Config {
+  DaemonSection daemon{};
+  LcmConfig lcm{};
+  MagnetometerConfig magnetometer{};
+  InsConfig ins{};
+  CalibrationConfig calibration{};
+  SimConfig sim{};
+};
+
+// Parses and validates; throws ConfigError naming `source`, the key and the problem.
+// Unknown keys are errors (a typo must not silently fall back to a default).
+Config parse_config(const std::string& text, const std::string& source);
+// Reads a file (ConfigError if it cannot be read) and parses it.
+std::string read_config_text(const std::string& path);
+
+// The embedded default configuration (simulated rig, LCM udpm ttl=0, li calibration); it states
+// every key with the value a missing key gets (tested).
+const std::string& default_config_text();
+
+}  // namespace magvec::host::daemon

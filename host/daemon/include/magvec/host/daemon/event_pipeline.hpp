@@ -1,0 +1,47 @@
+// EventPipeline: applies the LCM messages of a magvecd session to a Pipeline, in order. Both the
+// live daemon (which publishes each message and then applies that same message) and `magvec
+// replay` (which reads them back from a log) go through here, so they run the same code on the
+// same values:
+//   pipeline_event SESSION_START  -> Pipeline::create(parse_config(config_toml))
+//   pipeline_event SET_ACTIVE     -> set_active(model, cal_id)
+//   pipeline_event START_CALIBRATION -> start_calibration()
+//   mag_sample / attitude         -> on_magnetometer / on_attitude
+// Samples before the first SESSION_START have no pipeline: they are counted and skipped.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+
+#include "magvec/host/daemon/config.hpp"
+#include "magvec/host/daemon/lcm_codec.hpp"
+#include "magvec/host/daemon/pipeline.hpp"
+
+namespace magvec::host::daemon {
+
+class EventPipeline {
+ public:
+  explicit EventPipeline(hal::RecordSink& sink) : sink_(sink) {}
+
+  // Throws ConfigError when a SESSION_START carries an invalid configuration (the previous
+  // pipeline is kept).
+  void apply(const magvec_lcm::pipeline_event& e);
+  void apply(const magvec_lcm::mag_sample& m) noexcept;
+  void apply(const magvec_lcm::attitude& a) noexcept;
+
+  Pipeline* pipeline() noexcept { return pipeline_.get(); }
+  const Config& config() const noexcept { return config_; }
+  bool has_session() const noexcept { return pipeline_ != nullptr; }
+  std::uint64_t sessions() const noexcept { return sessions_; }
+  std::uint64_t skipped_before_session() const noexcept { return skipped_; }
+  std::uint64_t unknown_events() const noexcept { return unknown_events_; }
+
+ private:
+  hal::RecordSink& sink_;
+  std::unique_ptr<Pipeline> pipeline_;
+  Config config_{};
+  std::uint64_t sessions_{0};
+  std::uint64_t skipped_{0};
+  std::uint64_t unknown_events_{0};
+};
+
+}  // namespace magvec::host::daemon

@@ -1,0 +1,51 @@
+// Conversions between the HAL/core types and the LCM messages of host/lcm/*.lcm (package
+// magvec_lcm). Every double is carried as the same IEEE-754 value, so a decoded sample is
+// bit-identical to the one published (the basis of exact replay).
+#pragma once
+
+#include <cstdint>
+#include <magvec_lcm/attitude.hpp>
+#include <magvec_lcm/calibrated_vector.hpp>
+#include <magvec_lcm/calibration_state.hpp>
+#include <magvec_lcm/command.hpp>
+#include <magvec_lcm/command_reply.hpp>
+#include <magvec_lcm/health.hpp>
+#include <magvec_lcm/mag_sample.hpp>
+#include <magvec_lcm/pipeline_event.hpp>
+
+#include "magvec/core/sensor_model.hpp"
+#include "magvec/hal/attitude_source.hpp"
+#include "magvec/hal/magnetometer_source.hpp"
+#include "magvec/hal/record_sink.hpp"
+#include "magvec/host/daemon/pipeline.hpp"
+
+namespace magvec::host::daemon {
+
+magvec_lcm::mag_sample to_lcm(const hal::MagnetometerSample& s, double f_ref_nT) noexcept;
+hal::MagnetometerSample from_lcm(const magvec_lcm::mag_sample& m) noexcept;
+
+magvec_lcm::attitude to_lcm(const hal::AttitudeSample& a) noexcept;
+hal::AttitudeSample from_lcm(const magvec_lcm::attitude& m) noexcept;
+
+magvec_lcm::calibrated_vector to_lcm(const hal::OutputRecord& r) noexcept;
+hal::OutputRecord from_lcm(const magvec_lcm::calibrated_vector& m) noexcept;
+
+// Model <-> (w row-major, o, rm quaternion w x y z), exact.
+void model_to_arrays(const core::SensorModel<double>& m, double w[9], double o[3],
+                     double q[4]) noexcept;
+core::SensorModel<double> model_from_arrays(const double w[9], const double o[3],
+                                            const double q[4]) noexcept;
+
+magvec_lcm::pipeline_event session_start_event(std::int64_t sequence, const std::string& config);
+magvec_lcm::pipeline_event set_active_event(std::int64_t sequence,
+                                            const core::SensorModel<double>& model,
+                                            std::uint32_t cal_id);
+magvec_lcm::pipeline_event start_calibration_event(std::int64_t sequence);
+
+magvec_lcm::calibration_state to_lcm(const CalibrationStatus& s, std::uint64_t t_us,
+                                     std::uint32_t persisted_cal_id);
+
+// Bitwise equality of two records (NaN == NaN when the bits match).
+bool bit_identical(const hal::OutputRecord& a, const hal::OutputRecord& b) noexcept;
+
+}  // namespace magvec::host::daemon

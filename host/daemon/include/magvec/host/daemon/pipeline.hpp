@@ -1,0 +1,56 @@
+// magvecd's Pipeline: raw input events -> hil::LoopCore (AttitudeBuffer + SensorLoop) -> records,
+// with the calibrator chosen at run time from the configuration (li | ekf | none). It consumes
+// only raw events (magnetometer samples + scalar reference, INS attitude samples) and the pipeline
+// events (start calibration, install a calibration); it has no clock and no I/O besides the record
+// sink, so the same events in the same order give bit-identical records. The daemon and `magvec
+// replay` both drive it.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+
+#include "magvec/core/sensor_loop.hpp"
+#include "magvec/core/sensor_model.hpp"
+#include "magvec/hal/attitude_source.hpp"
+#include "magvec/hal/magnetometer_source.hpp"
+#include "magvec/hal/record_sink.hpp"
+#include "magvec/host/daemon/config.hpp"
+#include "magvec/host/hil/loop_core.hpp"
+
+namespace magvec::host::daemon {
+
+struct CalibrationStatus {
+  std::string calibrator;  // li | ekf | none
+  core::CalState state{core::CalState::kIdle};
+  core::CalFailure failure{core::CalFailure::kNone};
+  std::string solver_reason;  // calibrator verdict when the solver refused ("" otherwise)
+  double progress{0};
+  double validation_rms_nT{0};
+  std::uint32_t cal_id{0};
+  core::SensorModel<double> active{};
+};
+
+const char* cal_failure_name(core::CalFailure f) noexcept;
+
+class Pipeline {
+ public:
+  // Throws ConfigError for an unknown calibration mode.
+  static std::unique_ptr<Pipeline> create(const Config& config, hal::RecordSink& sink);
+  virtual ~Pipeline() = default;
+
+  virtual void on_attitude(const hal::AttitudeSample& a) noexcept = 0;
+  virtual hal::OutputRecord on_magnetometer(const hal::MagnetometerSample& s,
+                                            double f_ref_nT) noexcept = 0;
+  virtual void on_read_error() noexcept = 0;
+  virtual void start_calibration() noexcept = 0;
+  virtual void set_active(const core::SensorModel<double>& model,
+                          std::uint32_t cal_id) noexcept = 0;
+
+  virtual CalibrationStatus status() const = 0;
+  virtual core::CalState state() const noexcept = 0;  // cheap: for change detection
+  virtual const hil::HilCounters& counters() const noexcept = 0;
+  virtual const core::LoopHealth& health() const noexcept = 0;
+};
+
+}  // namespace magvec::host::daemon

@@ -1,0 +1,44 @@
+// Deterministic replay of a magvecd LCM log (issue 6 item 4): the raw channels and the pipeline
+// events are read in log order (lcm::LogFile) and fed to the same EventPipeline the daemon used,
+// as fast as possible. The records go to `sink`; the live outputs recorded in the log (output
+// channel) can be written to `logged_sink` and are compared bit for bit with the replayed ones.
+// Channel names come from the SESSION_START configuration in the log (the pipeline channel itself
+// is given, default MAGVEC_PIPELINE).
+#pragma once
+
+#include <cstdint>
+#include <stdexcept>
+#include <string>
+
+#include "magvec/hal/record_sink.hpp"
+#include "magvec/host/daemon/pipeline.hpp"
+
+namespace magvec::host::daemon {
+
+class ReplayError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+struct ReplayResult {
+  std::uint64_t log_events{0};
+  std::uint64_t sessions{0};
+  std::uint64_t mag_samples{0};
+  std::uint64_t attitude_samples{0};
+  std::uint64_t pipeline_events{0};
+  std::uint64_t records{0};         // replayed records
+  std::uint64_t logged_records{0};  // live records found in the log
+  std::uint64_t compared{0};        // pairs compared (in order)
+  std::uint64_t mismatches{0};      // pairs that differ in any bit
+  std::uint64_t decode_errors{0};
+  std::uint64_t skipped_before_session{0};
+  bool have_status{false};
+  CalibrationStatus final_status{};
+};
+
+// Throws ReplayError if the log cannot be opened or holds no session start.
+ReplayResult replay_log(const std::string& path, hal::RecordSink& sink,
+                        hal::RecordSink* logged_sink = nullptr,
+                        const std::string& pipeline_channel = "MAGVEC_PIPELINE");
+
+}  // namespace magvec::host::daemon

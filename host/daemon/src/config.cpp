@@ -1,0 +1,312 @@
+// magvecd TOML configuration; see config.hpp.
+#include "magvec/host/daemon/config.hpp"
+
+#include <toml++/toml.h>
+#include <cmath>
+#include <fstream>
+#include <set>
+#include <sstream>
+
+namespace magvec::host::daemon {
+namespace {
+
+// Typed access to one table; remembers which keys were read so unknown keys can be reported.
+class Table {
+ public:
+  Table(const toml::table* t, std::string path, const std::string& source)
+      : t_(t), path_(std::move(path)), source_(source) {}
+
+  [[noreturn]] void fail(const std::string& key, const std::string& what) const {
+    throw ConfigError(source_ + ": " + path_ + (path_.empty() ? "" : ".") + key + ": " + what);
+  }
+
+  const toml::node* get(const std::string& key) {
+    used_.insert(key);
+    return t_ == nullptr ? nullptr : t_->get(key);
+  }
+
+  void str(const std::string& key, std::string* out) {
+    const toml::node* n = get(key);
+    if (n == nullptr) return;
+    const auto v = n->value<std::string>();
+    if (!n->is_string() || !v) fail(key, "expected a string");
+    *out = *v;
+  }
+  void boolean(const std::string& key, bool* out) {
+    const toml::node* n = get(key);
+    if (n == nullptr) return;
+    if (!n->is_boolean()) fail(key, "expected true or false");
+    *out = *n->value<bool>();
+  }
+  void number(const std::string& key, double* out, double lo, double hi) {
+    const toml::node* n = get(key);
+    if (n == nullptr) return;
+    if (!n->is_number()) fail(key, "expected a number");
+    const double v = *n->value<double>();
+    if (!(v >= lo && v <= hi))  // also rejects nan
+      fail(key, "out of range [" + std::to_string(lo) + ", " + std::to_string(hi) + "]");
+    *out = v;
+  }
+  // A number that may be nan (explicitly "no value").
+  void number_or_nan(const std::string& key, double* out, double lo, double hi) {
+    const toml::node* n = get(key);
+    if (n == nullptr) return;
+    if (!n->is_number()) fail(key, "expected a number (or nan)");
+    const double v = *n->value<double>();
+    if (std::isnan(v)) {
+      *out = v;
+      return;
+    }
+    if (!(v >= lo && v <= hi))
+      fail(key, "out of range [" + std::to_string(lo) + ", " + std::to_string(hi) + "]");
+    *out = v;
+  }
+  template <typename Int>
+  void integer(const std::string& key, Int* out, std::int64_t lo, std::int64_t hi) {
+    const toml::node* n = get(key);
+    if (n == nullptr) return;
+    if (!n->is_integer()) fail(key, "expected an integer");
+    const std::int64_t v = *n->value<std::int64_t>();
+    if (v < lo || v > hi)
+      fail(key, "out of range [" + std::to_string(lo) + ", " + std::to_string(hi) + "]");
+    *out = static_cast<Int>(v);
+  }
+  template <typename T, std::size_t N, typename Read>
+  void array(const std::string& key, std::array<T, N>* out, Read read_one) {
+    const toml::node* n = get(key);
+    if (n == nullptr) return;
+    const toml::array* a = n->as_array();
+    if (a == nullptr || a->size() != N) fail(key, "expected an array of " + std::to_string(N));
+    for (std::size_t i = 0; i < N; ++i)
+      (*out)[i] = read_one(a->get(i), key);
+  }
+  void one_of(const std::string& key, std::string* out, const std::set<std::string>& allowed) {
+    str(key, out);
+    if (allowed.count(*out) == 0) {
+      std::string list;
+      for (const auto& a : allowed)
+        list += (list.empty() ? "" : ", ") + a;
+      fail(key, "'" + *out + "' is not one of " + list);
+    }
+  }
+  Table sub(const std::string& key) {
+    const toml::node* n = get(key);
+    if (n != nullptr && !n->is_table()) fail(key, "expected a table");
+    return Table(n == nullptr ? nullptr : n->as_table(), path_.empty() ? key : path_ + "." + key,
+                 source_);
+  }
+  void check_unknown() const {
+    if (t_ == nullptr) return;
+    for (const auto& [k, v] : *t_) {
+      const std::string key(k.str());
+      if (used_.count(key) == 0) fail(key, "unknown key");
+    }
+  }
+
+ private:
+  const toml::table* t_;
+  std::string path_;
+  const std::string& source_;
+  std::set<std::string> used_;
+};
+
+}  // namespace
+
+Config parse_config(const std::string& text, const std::string& source) {
+  toml::table root;
+  try {
+    root = toml::parse(text, source);
+  } catch (const toml::parse_error& e) {
+    std::ostringstream os;
+    os << source << ":" << e.source().begin.line << ":" << e.source().begin.column << ": "
+       << e.description();
+    throw ConfigError(os.str());
+  }
+  Config c;
+  Table top(&root, "", source);
+
+  Table d = top.sub("daemon");
+  d.str("state_dir", &c.daemon.state_dir);
+  if (c.daemon.state_dir.empty()) d.fail("state_dir", "must not be empty");
+  d.one_of("log_level", &c.daemon.log_level, {"trace", "debug", "info", "warn", "error"});
+  d.boolean("realtime", &c.daemon.realtime);
+  d.integer("rt_priority", &c.daemon.rt_priority, 1, 99);
+  d.number("health_period_s", &c.daemon.health_period_s, 0.01, 3600);
+  d.number("status_period_s", &c.daemon.status_period_s, 0.01, 3600);
+  d.check_unknown();
+
+  Table l = top.sub("lcm");
+  l.str("url", &c.lcm.url);
+  Table ch = l.sub("channels");
+  ch.str("raw_mag", &c.lcm.channels.raw_mag);
+  ch.str("attitude", &c.lcm.channels.attitude);
+  ch.str("pipeline", &c.lcm.channels.pipeline);
+  ch.str("output", &c.lcm.channels.output);
+  ch.str("cal_state", &c.lcm.channels.cal_state);
+  ch.str("health", &c.lcm.channels.health);
+  ch.str("command", &c.lcm.channels.command);
+  ch.str("reply", &c.lcm.channels.reply);
+  ch.check_unknown();
+  l.check_unknown();
+
+  Table dev = top.sub("devices");
+  Table m = dev.sub("magnetometer");
+  auto& mc = c.magnetometer;
+  m.one_of("link", &mc.link, {"spi", "serial"});
+  m.number("rate_hz", &mc.rate_hz, 0.1, 10000);
+  m.str("spi_device", &mc.spi_device);
+  m.integer("spi_speed_hz", &mc.spi_speed_hz, 1000, 50'000'000);
+  m.str("drdy_chip", &mc.drdy_chip);
+  m.integer("drdy_line", &mc.drdy_line, 0, 1023);
+  m.str("serial_device", &mc.serial_device);
+  m.integer("serial_baud", &mc.serial_baud, 300, 4'000'000);
+  m.integer("serial_reconnect_ms", &mc.serial_reconnect_ms, 10, 600'000);
+  m.integer("serial_latency_us", &mc.serial_latency_us, 0, 1'000'000);
+  auto as_double = [&m](const toml::node* n, const std::string& key) {
+    if (n == nullptr || !n->is_number()) m.fail(key, "expected numbers");
+    const double v = *n->value<double>();
+    if (!std::isfinite(v) || v == 0) m.fail(key, "expected finite non-zero numbers");
+    return v;
+  };
+  auto as_u8 = [&m](std::int64_t hi) {
+    return [&m, hi](const toml::node* n, const std::string& key) {
+      if (n == nullptr || !n->is_integer()) m.fail(key, "expected integers");
+      const std::int64_t v = *n->value<std::int64_t>();
+      if (v < 0 || v > hi) m.fail(key, "values must be in [0, " + std::to_string(hi) + "]");
+      return static_cast<std::uint8_t>(v);
+    };
+  };
+  m.array("nT_per_volt", &mc.adc.nT_per_volt, as_double);
+  m.array("channel_of_axis", &mc.adc.channel_of_axis, as_u8(3));
+  m.array("gain_code", &mc.adc.gain_code, as_u8(7));
+  m.integer("stuck_count", &mc.adc.stuck_count, 0, 1'000'000);
+  m.check_unknown();
+
+  Table ins = dev.sub("ins");
+  ins.str("can_interface", &c.ins.can_interface);
+  ins.number("rate_hz", &c.ins.rate_hz, 1, 1000);
+  ins.integer("latency_comp_us", &c.ins.latency_comp_us, 0, 1'000'000);
+  ins.boolean("require_attitude_valid", &c.ins.require_attitude_valid);
+  Table ids = ins.sub("can_ids");
+  ids.integer("status_01", &c.ins.ids.status_01, 0, 0x1FFFFFFF);
+  ids.integer("status_03", &c.ins.ids.status_03, 0, 0x1FFFFFFF);
+  ids.integer("ekf_info", &c.ins.ids.ekf_info, 0, 0x1FFFFFFF);
+  ids.integer("ekf_quat", &c.ins.ids.ekf_quat, 0, 0x1FFFFFFF);
+  ids.integer("ekf_euler", &c.ins.ids.ekf_euler, 0, 0x1FFFFFFF);
+  ids.integer("ekf_orientation_acc", &c.ins.ids.ekf_orientation_acc, 0, 0x1FFFFFFF);
+  ids.check_unknown();
+  ins.check_unknown();
+  dev.check_unknown();
+
+  Table cal = top.sub("calibration");
+  auto& cc = c.calibration;
+  cal.one_of("mode", &cc.mode, {"li", "ekf", "none"});
+  cal.boolean("start_on_boot", &cc.start_on_boot);
+  cal.boolean("auto_accept", &cc.auto_accept);
+  cal.number("noise_nT", &cc.noise_nT, 1e-6, 1e5);
+  cal.number("attitude_noise_deg", &cc.attitude_noise_deg, 1e-6, 10);
+  cal.integer("validation_samples", &cc.validation_samples, 1, 1'000'000);
+  cal.number("validation_max_rms_factor", &cc.validation_max_rms_factor, 0.1, 1000);
+  cal.number("validation_min_rms_nT", &cc.validation_min_rms_nT, 0, 1e5);
+  cal.boolean("validate_against_active", &cc.validate_against_active);
+  cal.boolean("ekf_align", &cc.ekf_align);
+  cal.integer("li_min_samples", &cc.li_min_samples, 16, 512);
+  cal.number_or_nan("reference_field_nT", &cc.reference_field_nT, 1000, 200000);
+  cal.check_unknown();
+
+  Table sim = top.sub("sim");
+  sim.one_of("scenario", &c.sim.scenario, {"li2023", "survey"});
+  sim.integer("seed", &c.sim.seed, 0, std::numeric_limits<std::int64_t>::max());
+  sim.integer("samples_per_attitude", &c.sim.samples_per_attitude, 1, 1'000'000);
+  sim.check_unknown();
+
+  top.check_unknown();
+  return c;
+}
+
+std::string read_config_text(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw ConfigError(path + ": cannot read the configuration file");
+  std::ostringstream os;
+  os << in.rdbuf();
+  if (in.bad()) throw ConfigError(path + ": read error");
+  return os.str();
+}
+
+const std::string& default_config_text() {
+  // Kept in step with host/daemon/magvecd.toml (the annotated version); a test parses both.
+  static const std::string kText = R"(# magvecd embedded default configuration
+[daemon]
+state_dir = "/var/lib/magvecd"
+log_level = "info"
+realtime = true
+rt_priority = 20
+health_period_s = 1.0
+status_period_s = 1.0
+
+[lcm]
+url = "udpm://239.255.76.67:7667?ttl=0"
+
+[lcm.channels]
+raw_mag = "MAGVEC_RAW_MAG"
+attitude = "MAGVEC_ATTITUDE"
+pipeline = "MAGVEC_PIPELINE"
+output = "MAGVEC_OUTPUT"
+cal_state = "MAGVEC_CAL_STATE"
+health = "MAGVEC_HEALTH"
+command = "MAGVEC_CMD"
+reply = "MAGVEC_CMD_REPLY"
+
+[devices.magnetometer]
+link = "spi"
+rate_hz = 100.0
+spi_device = "/dev/spidev0.0"
+spi_speed_hz = 4000000
+drdy_chip = "/dev/gpiochip0"
+drdy_line = 0
+serial_device = "/dev/ttyUSB0"
+serial_baud = 115200
+serial_reconnect_ms = 1000
+serial_latency_us = 0
+nT_per_volt = [100000.0, 100000.0, 100000.0]
+channel_of_axis = [0, 1, 2]
+gain_code = [0, 0, 0, 0]
+stuck_count = 64
+
+[devices.ins]
+can_interface = "can0"
+rate_hz = 100.0
+latency_comp_us = 500
+require_attitude_valid = true
+
+[devices.ins.can_ids]
+status_01 = 0x100
+status_03 = 0x102
+ekf_info = 0x130
+ekf_quat = 0x131
+ekf_euler = 0x132
+ekf_orientation_acc = 0x133
+
+[calibration]
+mode = "li"
+start_on_boot = true
+auto_accept = true
+noise_nT = 0.3
+attitude_noise_deg = 0.015
+validation_samples = 200
+validation_max_rms_factor = 3.0
+validation_min_rms_nT = 1.0
+validate_against_active = true
+ekf_align = true
+li_min_samples = 300
+reference_field_nT = nan
+
+[sim]
+scenario = "li2023"
+seed = 1
+samples_per_attitude = 10
+)";
+  return kText;
+}
+
+}  // namespace magvec::host::daemon

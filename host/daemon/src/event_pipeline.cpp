@@ -1,0 +1,53 @@
+// EventPipeline; see event_pipeline.hpp.
+#include "magvec/host/daemon/event_pipeline.hpp"
+
+namespace magvec::host::daemon {
+
+void EventPipeline::apply(const magvec_lcm::pipeline_event& e) {
+  switch (e.kind) {
+    case magvec_lcm::pipeline_event::SESSION_START: {
+      Config c = parse_config(e.config_toml, "session configuration");
+      auto p = Pipeline::create(c, sink_);
+      pipeline_ = std::move(p);
+      config_ = std::move(c);
+      ++sessions_;
+      return;
+    }
+    case magvec_lcm::pipeline_event::SET_ACTIVE:
+      if (!pipeline_) {
+        ++skipped_;
+        return;
+      }
+      pipeline_->set_active(model_from_arrays(e.w, e.o_nT, e.rm_quat),
+                            static_cast<std::uint32_t>(e.cal_id));
+      return;
+    case magvec_lcm::pipeline_event::START_CALIBRATION:
+      if (!pipeline_) {
+        ++skipped_;
+        return;
+      }
+      pipeline_->start_calibration();
+      return;
+    default:
+      ++unknown_events_;
+      return;
+  }
+}
+
+void EventPipeline::apply(const magvec_lcm::mag_sample& m) noexcept {
+  if (!pipeline_) {
+    ++skipped_;
+    return;
+  }
+  pipeline_->on_magnetometer(from_lcm(m), m.f_ref_nT);
+}
+
+void EventPipeline::apply(const magvec_lcm::attitude& a) noexcept {
+  if (!pipeline_) {
+    ++skipped_;
+    return;
+  }
+  pipeline_->on_attitude(from_lcm(a));
+}
+
+}  // namespace magvec::host::daemon

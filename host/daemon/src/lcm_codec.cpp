@@ -1,0 +1,172 @@
+// LCM <-> HAL conversions; see lcm_codec.hpp.
+#include "magvec/host/daemon/lcm_codec.hpp"
+
+#include <cstring>
+
+namespace magvec::host::daemon {
+
+magvec_lcm::mag_sample to_lcm(const hal::MagnetometerSample& s, double f_ref_nT) noexcept {
+  magvec_lcm::mag_sample m;
+  m.t_us = static_cast<std::int64_t>(s.t_us);
+  for (std::size_t i = 0; i < 3; ++i) {
+    m.m_nT[i] = s.m_nT[i];
+    m.raw[i] = s.raw[i];
+  }
+  m.flags = static_cast<std::int32_t>(s.flags);
+  m.sequence = static_cast<std::int32_t>(s.sequence);
+  m.f_ref_nT = f_ref_nT;
+  return m;
+}
+
+hal::MagnetometerSample from_lcm(const magvec_lcm::mag_sample& m) noexcept {
+  hal::MagnetometerSample s;
+  s.t_us = static_cast<std::uint64_t>(m.t_us);
+  for (std::size_t i = 0; i < 3; ++i) {
+    s.m_nT[i] = m.m_nT[i];
+    s.raw[i] = m.raw[i];
+  }
+  s.flags = static_cast<std::uint32_t>(m.flags);
+  s.sequence = static_cast<std::uint32_t>(m.sequence);
+  return s;
+}
+
+magvec_lcm::attitude to_lcm(const hal::AttitudeSample& a) noexcept {
+  magvec_lcm::attitude m;
+  m.t_us = static_cast<std::int64_t>(a.t_us);
+  m.t_ins_us = static_cast<std::int64_t>(a.t_ins_us);
+  for (std::size_t i = 0; i < 4; ++i)
+    m.q_nb[i] = a.q_nb[i];
+  for (std::size_t i = 0; i < 3; ++i)
+    m.sigma_rad[i] = a.sigma_rad[i];
+  m.flags = static_cast<std::int32_t>(a.flags);
+  m.solution_mode = static_cast<std::int8_t>(a.solution_mode);
+  return m;
+}
+
+hal::AttitudeSample from_lcm(const magvec_lcm::attitude& m) noexcept {
+  hal::AttitudeSample a;
+  a.t_us = static_cast<std::uint64_t>(m.t_us);
+  a.t_ins_us = static_cast<std::uint64_t>(m.t_ins_us);
+  for (std::size_t i = 0; i < 4; ++i)
+    a.q_nb[i] = m.q_nb[i];
+  for (std::size_t i = 0; i < 3; ++i)
+    a.sigma_rad[i] = m.sigma_rad[i];
+  a.flags = static_cast<std::uint32_t>(m.flags);
+  a.solution_mode = static_cast<std::uint8_t>(m.solution_mode);
+  return a;
+}
+
+magvec_lcm::calibrated_vector to_lcm(const hal::OutputRecord& r) noexcept {
+  magvec_lcm::calibrated_vector m;
+  m.t_us = static_cast<std::int64_t>(r.t_us);
+  for (std::size_t i = 0; i < 3; ++i) {
+    m.raw_nT[i] = r.raw_nT[i];
+    m.h_s_nT[i] = r.h_s_nT[i];
+    m.h_enu_nT[i] = r.h_n_nT[i];
+  }
+  m.f_nT = r.f_nT;
+  m.sigma_f_nT = r.sigma_f_nT;
+  m.flags = static_cast<std::int32_t>(r.flags);
+  m.cal_id = static_cast<std::int32_t>(r.cal_id);
+  return m;
+}
+
+hal::OutputRecord from_lcm(const magvec_lcm::calibrated_vector& m) noexcept {
+  hal::OutputRecord r;
+  r.t_us = static_cast<std::uint64_t>(m.t_us);
+  for (std::size_t i = 0; i < 3; ++i) {
+    r.raw_nT[i] = m.raw_nT[i];
+    r.h_s_nT[i] = m.h_s_nT[i];
+    r.h_n_nT[i] = m.h_enu_nT[i];
+  }
+  r.f_nT = m.f_nT;
+  r.sigma_f_nT = m.sigma_f_nT;
+  r.flags = static_cast<std::uint32_t>(m.flags);
+  r.cal_id = static_cast<std::uint32_t>(m.cal_id);
+  return r;
+}
+
+void model_to_arrays(const core::SensorModel<double>& m, double w[9], double o[3],
+                     double q[4]) noexcept {
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c)
+      w[3 * r + c] = m.w(r, c);
+  for (int i = 0; i < 3; ++i)
+    o[i] = m.o(i);
+  q[0] = m.rm.w();
+  q[1] = m.rm.x();
+  q[2] = m.rm.y();
+  q[3] = m.rm.z();
+}
+
+core::SensorModel<double> model_from_arrays(const double w[9], const double o[3],
+                                            const double q[4]) noexcept {
+  core::SensorModel<double> m;
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c)
+      m.w(r, c) = w[3 * r + c];
+  for (int i = 0; i < 3; ++i)
+    m.o(i) = o[i];
+  m.rm = core::Quat<double>(q[0], q[1], q[2], q[3]);  // exact: no renormalisation
+  return m;
+}
+
+namespace {
+magvec_lcm::pipeline_event blank_event(std::int8_t kind, std::int64_t sequence) {
+  magvec_lcm::pipeline_event e{};
+  e.kind = kind;
+  e.sequence = sequence;
+  const core::SensorModel<double> identity;
+  model_to_arrays(identity, e.w, e.o_nT, e.rm_quat);
+  e.cal_id = 0;
+  return e;
+}
+}  // namespace
+
+magvec_lcm::pipeline_event session_start_event(std::int64_t sequence, const std::string& config) {
+  magvec_lcm::pipeline_event e = blank_event(magvec_lcm::pipeline_event::SESSION_START, sequence);
+  e.config_toml = config;
+  return e;
+}
+
+magvec_lcm::pipeline_event set_active_event(std::int64_t sequence,
+                                            const core::SensorModel<double>& model,
+                                            std::uint32_t cal_id) {
+  magvec_lcm::pipeline_event e = blank_event(magvec_lcm::pipeline_event::SET_ACTIVE, sequence);
+  model_to_arrays(model, e.w, e.o_nT, e.rm_quat);
+  e.cal_id = static_cast<std::int32_t>(cal_id);
+  return e;
+}
+
+magvec_lcm::pipeline_event start_calibration_event(std::int64_t sequence) {
+  return blank_event(magvec_lcm::pipeline_event::START_CALIBRATION, sequence);
+}
+
+magvec_lcm::calibration_state to_lcm(const CalibrationStatus& s, std::uint64_t t_us,
+                                     std::uint32_t persisted_cal_id) {
+  magvec_lcm::calibration_state m{};
+  m.t_us = static_cast<std::int64_t>(t_us);
+  m.calibrator = s.calibrator;
+  m.state = core::cal_state_name(s.state);
+  m.failure = cal_failure_name(s.failure);
+  m.solver_reason = s.solver_reason;
+  m.progress = s.progress;
+  m.validation_rms_nT = s.validation_rms_nT;
+  m.cal_id = static_cast<std::int32_t>(s.cal_id);
+  m.persisted_cal_id = static_cast<std::int32_t>(persisted_cal_id);
+  model_to_arrays(s.active, m.w, m.o_nT, m.rm_quat);
+  return m;
+}
+
+bool bit_identical(const hal::OutputRecord& a, const hal::OutputRecord& b) noexcept {
+  auto same = [](double x, double y) { return std::memcmp(&x, &y, sizeof(double)) == 0; };
+  if (a.t_us != b.t_us || a.flags != b.flags || a.cal_id != b.cal_id) return false;
+  for (std::size_t i = 0; i < 3; ++i) {
+    if (!same(a.raw_nT[i], b.raw_nT[i]) || !same(a.h_s_nT[i], b.h_s_nT[i]) ||
+        !same(a.h_n_nT[i], b.h_n_nT[i]))
+      return false;
+  }
+  return same(a.f_nT, b.f_nT) && same(a.sigma_f_nT, b.sigma_f_nT);
+}
+
+}  // namespace magvec::host::daemon

@@ -1,0 +1,112 @@
+// magvecd Pipeline; see pipeline.hpp.
+#include "magvec/host/daemon/pipeline.hpp"
+
+#include "magvec/core/batch_li_calibrator.hpp"
+#include "magvec/core/ekf_calibrator.hpp"
+#include "magvec/host/daemon/sim_setup.hpp"
+
+namespace magvec::host::daemon {
+namespace {
+
+using LiCal = core::BatchLiCalibrator<double, 512>;
+using EkfCal = core::EkfCalibrator<double, 256>;
+
+std::string solver_reason(const hil::NullCalibrator&, std::uint8_t) {
+  return "none";
+}
+std::string solver_reason(const LiCal&, std::uint8_t code) {
+  return core::verdict_name(static_cast<core::Verdict>(code));
+}
+std::string solver_reason(const EkfCal&, std::uint8_t code) {
+  return core::ekf_cal_code_name(code);
+}
+
+template <typename Calibrator>
+class PipelineImpl final : public Pipeline {
+ public:
+  PipelineImpl(std::string name, std::unique_ptr<Calibrator> cal, hal::RecordSink& sink,
+               const hil::HilConfig& hc, double mag_rate_hz, double ins_rate_hz)
+      : name_(std::move(name)),
+        cal_(std::move(cal)),
+        core_(*cal_, sink, hc, mag_rate_hz, ins_rate_hz) {}
+
+  void on_attitude(const hal::AttitudeSample& a) noexcept override { core_.on_attitude(a); }
+  hal::OutputRecord on_magnetometer(const hal::MagnetometerSample& s,
+                                    double f_ref_nT) noexcept override {
+    return core_.on_magnetometer(s, f_ref_nT);
+  }
+  void on_read_error() noexcept override { core_.on_read_error(); }
+  void start_calibration() noexcept override { core_.loop().start_calibration(); }
+  void set_active(const core::SensorModel<double>& model, std::uint32_t cal_id) noexcept override {
+    core_.loop().set_active(model, cal_id);
+  }
+  CalibrationStatus status() const override {
+    const auto& lp = core_.loop();
+    CalibrationStatus s;
+    s.calibrator = name_;
+    s.state = lp.state();
+    s.failure = lp.failure();
+    if (lp.state() == core::CalState::kFailed &&
+        lp.failure() == core::CalFailure::kSolverRejected) {
+      s.solver_reason = solver_reason(*cal_, lp.solver_code());
+    }
+    s.progress = lp.progress();
+    s.validation_rms_nT = lp.last_validation_rms_nT();
+    s.cal_id = lp.cal_id();
+    s.active = lp.active_model();
+    return s;
+  }
+  core::CalState state() const noexcept override { return core_.loop().state(); }
+  const hil::HilCounters& counters() const noexcept override { return core_.counters(); }
+  const core::LoopHealth& health() const noexcept override { return core_.loop().health(); }
+
+ private:
+  std::string name_;
+  std::unique_ptr<Calibrator> cal_;
+  hil::LoopCore<Calibrator> core_;
+};
+
+}  // namespace
+
+const char* cal_failure_name(core::CalFailure f) noexcept {
+  switch (f) {
+    case core::CalFailure::kNone:
+      return "none";
+    case core::CalFailure::kSolverRejected:
+      return "solver_rejected";
+    case core::CalFailure::kValidationFailed:
+      return "validation_failed";
+    case core::CalFailure::kNoReference:
+      return "no_reference";
+  }
+  return "unknown";
+}
+
+std::unique_ptr<Pipeline> Pipeline::create(const Config& config, hal::RecordSink& sink) {
+  const CalibrationConfig& cc = config.calibration;
+  const hil::HilConfig hc = hil_config(config);
+  const double mag_rate = config.magnetometer.rate_hz;
+  const double ins_rate = config.ins.rate_hz;
+  if (cc.mode == "li") {
+    core::BatchLiCalibratorConfig<double> lc;
+    lc.batch.mag_noise_nT = cc.noise_nT;
+    lc.batch.attitude_noise_deg = cc.attitude_noise_deg;
+    lc.min_samples = cc.li_min_samples;
+    return std::make_unique<PipelineImpl<LiCal>>("li", std::make_unique<LiCal>(lc), sink, hc,
+                                                 mag_rate, ins_rate);
+  }
+  if (cc.mode == "ekf") {
+    core::EkfCalibratorConfig<double> ec;
+    ec.ekf.noise_sigma_nT = cc.noise_nT;
+    ec.align = cc.ekf_align;
+    return std::make_unique<PipelineImpl<EkfCal>>("ekf", std::make_unique<EkfCal>(ec), sink, hc,
+                                                  mag_rate, ins_rate);
+  }
+  if (cc.mode == "none") {
+    return std::make_unique<PipelineImpl<hil::NullCalibrator>>(
+        "none", std::make_unique<hil::NullCalibrator>(), sink, hc, mag_rate, ins_rate);
+  }
+  throw ConfigError("calibration.mode: unknown calibrator '" + cc.mode + "'");
+}
+
+}  // namespace magvec::host::daemon

@@ -1,0 +1,118 @@
+// magvecd log replay; see replay.hpp.
+#include "magvec/host/daemon/replay.hpp"
+
+#include <deque>
+#include <lcm/lcm-cpp.hpp>
+
+#include "magvec/host/daemon/event_pipeline.hpp"
+#include "magvec/host/daemon/lcm_codec.hpp"
+
+namespace magvec::host::daemon {
+namespace {
+
+// Forwards to the caller's sink and keeps the record for the comparison with the logged one.
+class TeeSink final : public hal::RecordSink {
+ public:
+  TeeSink(hal::RecordSink& out, std::deque<hal::OutputRecord>* queue) : out_(out), queue_(queue) {}
+  hal::Status emit(const hal::OutputRecord& r) noexcept override {
+    ++count_;
+    if (queue_ != nullptr) queue_->push_back(r);
+    return out_.emit(r);
+  }
+  std::uint64_t count() const noexcept { return count_; }
+
+ private:
+  hal::RecordSink& out_;
+  std::deque<hal::OutputRecord>* queue_;
+  std::uint64_t count_{0};
+};
+
+template <typename Msg>
+bool decode(const lcm::LogEvent* ev, Msg* msg) {
+  return msg->decode(ev->data, 0, static_cast<int>(ev->datalen)) >= 0;
+}
+
+}  // namespace
+
+ReplayResult replay_log(const std::string& path, hal::RecordSink& sink,
+                        hal::RecordSink* logged_sink, const std::string& pipeline_channel) {
+  lcm::LogFile log(path, "r");
+  if (!log.good()) throw ReplayError(path + ": cannot open the LCM log");
+  ReplayResult r;
+  std::deque<hal::OutputRecord> replayed;
+  std::deque<hal::OutputRecord> logged;
+  TeeSink tee(sink, &replayed);
+  EventPipeline ep(tee);
+  auto compare = [&] {
+    while (!replayed.empty() && !logged.empty()) {
+      ++r.compared;
+      if (!bit_identical(replayed.front(), logged.front())) ++r.mismatches;
+      replayed.pop_front();
+      logged.pop_front();
+    }
+  };
+  const lcm::LogEvent* ev = nullptr;
+  while ((ev = log.readNextEvent()) != nullptr) {
+    ++r.log_events;
+    const std::string& ch = ev->channel;
+    if (ch == pipeline_channel) {
+      magvec_lcm::pipeline_event e;
+      if (!decode(ev, &e)) {
+        ++r.decode_errors;
+        continue;
+      }
+      ++r.pipeline_events;
+      try {
+        ep.apply(e);
+      } catch (const ConfigError& err) {
+        throw ReplayError(path + ": event " + std::to_string(r.log_events) +
+                          ": invalid session configuration: " + err.what());
+      }
+      continue;
+    }
+    if (!ep.has_session()) continue;  // channel names come from the session configuration
+    const LcmChannels& c = ep.config().lcm.channels;
+    if (ch == c.raw_mag) {
+      magvec_lcm::mag_sample m;
+      if (!decode(ev, &m)) {
+        ++r.decode_errors;
+        continue;
+      }
+      ++r.mag_samples;
+      ep.apply(m);
+    } else if (ch == c.attitude) {
+      magvec_lcm::attitude a;
+      if (!decode(ev, &a)) {
+        ++r.decode_errors;
+        continue;
+      }
+      ++r.attitude_samples;
+      ep.apply(a);
+    } else if (ch == c.output) {
+      magvec_lcm::calibrated_vector v;
+      if (!decode(ev, &v)) {
+        ++r.decode_errors;
+        continue;
+      }
+      ++r.logged_records;
+      const hal::OutputRecord rec = from_lcm(v);
+      logged.push_back(rec);
+      if (logged_sink != nullptr) logged_sink->emit(rec);
+    }
+    compare();
+  }
+  compare();
+  if (ep.sessions() == 0)
+    throw ReplayError(path + ": no SESSION_START event on channel " + pipeline_channel +
+                      " (not a magvecd log, or the recording started after the daemon)");
+  r.sessions = ep.sessions();
+  r.records = tee.count();
+  r.skipped_before_session = ep.skipped_before_session();
+  if (ep.pipeline() != nullptr) {
+    r.have_status = true;
+    r.final_status = ep.pipeline()->status();
+  }
+  return r;
+}
+
+}  // namespace magvec::host::daemon

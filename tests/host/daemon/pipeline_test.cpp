@@ -1,0 +1,338 @@
+// magvecd's Pipeline / EventPipeline / replay (host/daemon): the daemon pipeline driven by the
+// LCM messages gives exactly the records of the HIL harness on the same rig; an LCM log written
+// the way the daemon publishes replays bit-identically, and a changed sample is detected.
+#include <gtest/gtest.h>
+
+#include <unistd.h>
+
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <lcm/lcm-cpp.hpp>
+#include <vector>
+
+#include "magvec/core/batch_li_calibrator.hpp"
+#include "magvec/host/daemon/event_pipeline.hpp"
+#include "magvec/host/daemon/lcm_codec.hpp"
+#include "magvec/host/daemon/replay.hpp"
+#include "magvec/host/daemon/sim_setup.hpp"
+#include "magvec/host/hil/hil_session.hpp"
+
+namespace magvec::host::daemon {
+namespace {
+
+struct VectorSink final : hal::RecordSink {
+  std::vector<hal::OutputRecord> records;
+  hal::Status emit(const hal::OutputRecord& r) noexcept override {
+    records.push_back(r);
+    return hal::Status::kOk;
+  }
+};
+
+std::string fast_config_text(const std::string& mode) {
+  std::string text = default_config_text();
+  auto patch = [&text](const std::string& from, const std::string& to) {
+    text.replace(text.find(from), from.size(), to);
+  };
+  patch("samples_per_attitude = 10", "samples_per_attitude = 1");
+  patch("li_min_samples = 300", "li_min_samples = 100");
+  patch("validation_samples = 200", "validation_samples = 100");
+  patch("mode = \"li\"", "mode = \"" + mode + "\"");
+  return text;
+}
+
+Config fast_config(const std::string& mode) {
+  return parse_config(fast_config_text(mode), "test");
+}
+
+// Drives SimFrontEnd events into an EventPipeline through the LCM messages (as magvecd does) and
+// optionally writes them into an LCM log in publish order.
+struct DaemonLike {
+  VectorSink sink;
+  EventPipeline ep{sink};
+  lcm::LogFile* log{nullptr};
+  std::int64_t t{0};
+  template <typename Msg>
+  void record(const std::string& ch, const Msg& m) {
+    if (log == nullptr) return;
+    std::vector<std::uint8_t> buf(static_cast<std::size_t>(m.getEncodedSize()));
+    m.encode(buf.data(), 0, static_cast<int>(buf.size()));
+    lcm::LogEvent ev;
+    ev.eventnum = 0;
+    ev.timestamp = ++t;
+    ev.channel = ch;
+    ev.datalen = static_cast<std::int32_t>(buf.size());
+    ev.data = buf.data();
+    ASSERT_EQ(log->writeEvent(&ev), 0);
+  }
+  void event(const magvec_lcm::pipeline_event& e) {
+    record("MAGVEC_PIPELINE", e);
+    ep.apply(e);
+  }
+  void on_attitude(const hal::AttitudeSample& a) {
+    const auto m = to_lcm(a);
+    record("MAGVEC_ATTITUDE", m);
+    ep.apply(m);
+  }
+  void on_magnetometer(const hal::MagnetometerSample& s, double f) {
+    const auto m = to_lcm(s, f);
+    record("MAGVEC_RAW_MAG", m);
+    const std::size_t before = sink.records.size();
+    ep.apply(m);
+    if (sink.records.size() == before + 1) record("MAGVEC_OUTPUT", to_lcm(sink.records.back()));
+  }
+  void on_read_error(hal::Status) { ep.pipeline()->on_read_error(); }
+};
+
+TEST(DaemonConfig, EmbeddedDefaultAndExampleFileParseAlike) {
+  const Config d = parse_config(default_config_text(), "default");
+  const Config e =
+      parse_config(read_config_text(std::string(MAGVEC_SOURCE_DIR) + "/host/daemon/magvecd.toml"),
+                   "magvecd.toml");
+  EXPECT_EQ(d.lcm.url, e.lcm.url);
+  EXPECT_EQ(d.lcm.channels.output, e.lcm.channels.output);
+  EXPECT_EQ(d.magnetometer.rate_hz, e.magnetometer.rate_hz);
+  EXPECT_EQ(d.magnetometer.adc.nT_per_volt, e.magnetometer.adc.nT_per_volt);
+  EXPECT_EQ(d.ins.ids.ekf_quat, e.ins.ids.ekf_quat);
+  EXPECT_EQ(d.calibration.mode, e.calibration.mode);
+  EXPECT_EQ(d.calibration.li_min_samples, e.calibration.li_min_samples);
+  EXPECT_TRUE(std::isnan(d.calibration.reference_field_nT));
+  EXPECT_TRUE(std::isnan(e.calibration.reference_field_nT));
+  EXPECT_EQ(d.sim.samples_per_attitude, e.sim.samples_per_attitude);
+  EXPECT_EQ(d.daemon.state_dir, e.daemon.state_dir);
+}
+
+// A missing key takes the value the embedded default states.
+TEST(DaemonConfig, EmptyFileEqualsTheEmbeddedDefault) {
+  const Config d = parse_config(default_config_text(), "default");
+  const Config e = parse_config("", "empty");
+  EXPECT_EQ(d.daemon.state_dir, e.daemon.state_dir);
+  EXPECT_EQ(d.daemon.log_level, e.daemon.log_level);
+  EXPECT_EQ(d.daemon.realtime, e.daemon.realtime);
+  EXPECT_EQ(d.daemon.rt_priority, e.daemon.rt_priority);
+  EXPECT_EQ(d.daemon.health_period_s, e.daemon.health_period_s);
+  EXPECT_EQ(d.daemon.status_period_s, e.daemon.status_period_s);
+  EXPECT_EQ(d.lcm.url, e.lcm.url);
+  const auto& dc = d.lcm.channels;
+  const auto& ec = e.lcm.channels;
+  EXPECT_EQ(dc.raw_mag + dc.attitude + dc.pipeline + dc.output + dc.cal_state + dc.health +
+                dc.command + dc.reply,
+            ec.raw_mag + ec.attitude + ec.pipeline + ec.output + ec.cal_state + ec.health +
+                ec.command + ec.reply);
+  const auto& dm = d.magnetometer;
+  const auto& em = e.magnetometer;
+  EXPECT_EQ(dm.link, em.link);
+  EXPECT_EQ(dm.rate_hz, em.rate_hz);
+  EXPECT_EQ(dm.spi_device, em.spi_device);
+  EXPECT_EQ(dm.spi_speed_hz, em.spi_speed_hz);
+  EXPECT_EQ(dm.drdy_chip, em.drdy_chip);
+  EXPECT_EQ(dm.drdy_line, em.drdy_line);
+  EXPECT_EQ(dm.serial_device, em.serial_device);
+  EXPECT_EQ(dm.serial_baud, em.serial_baud);
+  EXPECT_EQ(dm.serial_reconnect_ms, em.serial_reconnect_ms);
+  EXPECT_EQ(dm.serial_latency_us, em.serial_latency_us);
+  EXPECT_EQ(dm.adc.nT_per_volt, em.adc.nT_per_volt);
+  EXPECT_EQ(dm.adc.channel_of_axis, em.adc.channel_of_axis);
+  EXPECT_EQ(dm.adc.gain_code, em.adc.gain_code);
+  EXPECT_EQ(dm.adc.stuck_count, em.adc.stuck_count);
+  EXPECT_EQ(d.ins.can_interface, e.ins.can_interface);
+  EXPECT_EQ(d.ins.rate_hz, e.ins.rate_hz);
+  EXPECT_EQ(d.ins.latency_comp_us, e.ins.latency_comp_us);
+  EXPECT_EQ(d.ins.require_attitude_valid, e.ins.require_attitude_valid);
+  EXPECT_EQ(d.ins.ids.status_01, e.ins.ids.status_01);
+  EXPECT_EQ(d.ins.ids.status_03, e.ins.ids.status_03);
+  EXPECT_EQ(d.ins.ids.ekf_info, e.ins.ids.ekf_info);
+  EXPECT_EQ(d.ins.ids.ekf_quat, e.ins.ids.ekf_quat);
+  EXPECT_EQ(d.ins.ids.ekf_euler, e.ins.ids.ekf_euler);
+  EXPECT_EQ(d.ins.ids.ekf_orientation_acc, e.ins.ids.ekf_orientation_acc);
+  const auto& dk = d.calibration;
+  const auto& ek = e.calibration;
+  EXPECT_EQ(dk.mode, ek.mode);
+  EXPECT_EQ(dk.start_on_boot, ek.start_on_boot);
+  EXPECT_EQ(dk.auto_accept, ek.auto_accept);
+  EXPECT_EQ(dk.noise_nT, ek.noise_nT);
+  EXPECT_EQ(dk.attitude_noise_deg, ek.attitude_noise_deg);
+  EXPECT_EQ(dk.validation_samples, ek.validation_samples);
+  EXPECT_EQ(dk.validation_max_rms_factor, ek.validation_max_rms_factor);
+  EXPECT_EQ(dk.validation_min_rms_nT, ek.validation_min_rms_nT);
+  EXPECT_EQ(dk.validate_against_active, ek.validate_against_active);
+  EXPECT_EQ(dk.ekf_align, ek.ekf_align);
+  EXPECT_EQ(dk.li_min_samples, ek.li_min_samples);
+  EXPECT_EQ(std::isnan(dk.reference_field_nT), std::isnan(ek.reference_field_nT));
+  EXPECT_EQ(d.sim.scenario, e.sim.scenario);
+  EXPECT_EQ(d.sim.seed, e.sim.seed);
+  EXPECT_EQ(d.sim.samples_per_attitude, e.sim.samples_per_attitude);
+}
+
+TEST(DaemonConfig, ErrorsNameTheKey) {
+  auto error_of = [](const std::string& text) {
+    try {
+      parse_config(text, "cfg.toml");
+    } catch (const ConfigError& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(error_of("[calibration]\nmode = \"magic\"\n").find("calibration.mode"),
+            std::string::npos);
+  EXPECT_NE(error_of("[calibration]\nnoise_nT = \"x\"\n").find("calibration.noise_nT"),
+            std::string::npos);
+  EXPECT_NE(error_of("[devices.magnetometer]\nrate_hz = -5\n").find("rate_hz: out of range"),
+            std::string::npos);
+  EXPECT_NE(error_of("[devices.ins]\ncan_interfce = \"can0\"\n").find("unknown key"),
+            std::string::npos);
+  EXPECT_NE(error_of("[devices.magnetometer]\nnT_per_volt = [1, 2]\n").find("array of 3"),
+            std::string::npos);
+  EXPECT_NE(error_of("[daemon\nstate_dir=").find("cfg.toml:1"), std::string::npos);
+  EXPECT_EQ(error_of(""), "no error");  // every key is optional
+}
+
+TEST(DaemonPipeline, SameRecordsAsTheHilHarnessThroughLcmMessages) {
+  const Config c = fast_config("li");
+  // HIL harness: its own calibrator, started at the first step.
+  using LiCal = core::BatchLiCalibrator<double, 512>;
+  core::BatchLiCalibratorConfig<double> lc;
+  lc.batch.mag_noise_nT = c.calibration.noise_nT;
+  lc.batch.attitude_noise_deg = c.calibration.attitude_noise_deg;
+  lc.min_samples = c.calibration.li_min_samples;
+  auto cal = std::make_unique<LiCal>(lc);
+  VectorSink hil_sink;
+  hil::HilConfig hc = hil_config(c);
+  hc.start_calibration = true;
+  drivers::sim::Simulator sim_a(sim_scenario(c), c.sim.seed);
+  auto hil = std::make_unique<hil::HilSession<LiCal>>(sim_a, sim_rig_config(c), *cal, hil_sink, hc);
+  ASSERT_EQ(hil->init(), hal::Status::kOk);
+
+  // Daemon path: SimFrontEnd -> LCM messages -> EventPipeline.
+  drivers::sim::Simulator sim_b(sim_scenario(c), c.sim.seed);
+  auto front = std::make_unique<hil::SimFrontEnd>(sim_b, sim_rig_config(c));
+  ASSERT_EQ(front->init(), hal::Status::kOk);
+  DaemonLike d;
+  d.event(session_start_event(1, fast_config_text("li")));
+  d.event(start_calibration_event(2));
+
+  constexpr int kSteps = 1500;
+  for (int i = 0; i < kSteps; ++i) {
+    ASSERT_TRUE(hil->step());
+    ASSERT_TRUE(front->rig().step());
+    front->poll(d);
+  }
+  ASSERT_EQ(hil_sink.records.size(), d.sink.records.size());
+  ASSERT_GT(d.sink.records.size(), 1000u);
+  for (std::size_t i = 0; i < d.sink.records.size(); ++i)
+    ASSERT_TRUE(bit_identical(hil_sink.records[i], d.sink.records[i])) << "record " << i;
+  // The run calibrated: outputs switch to cal_id 1 and the pipeline reports it applied.
+  EXPECT_EQ(d.sink.records.back().cal_id, 1u);
+  const CalibrationStatus st = d.ep.pipeline()->status();
+  EXPECT_EQ(st.state, core::CalState::kApplied);
+  EXPECT_EQ(st.calibrator, "li");
+  EXPECT_LT(st.validation_rms_nT, 1.0);
+}
+
+class DaemonReplay : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = std::filesystem::temp_directory_path() /
+           ("magvec_replay_test_" + std::to_string(::getpid()));
+    std::filesystem::create_directories(dir_);
+    path_ = (dir_ / "session.lcm").string();
+  }
+  void TearDown() override { std::filesystem::remove_all(dir_); }
+
+  // Writes a log the way magvecd publishes: session, calibration install, start, samples,
+  // outputs; a second session (reload) in the middle. Returns the live records.
+  std::vector<hal::OutputRecord> write_log(int steps) {
+    lcm::LogFile log(path_, "w");
+    EXPECT_TRUE(log.good());
+    const Config c = fast_config("li");
+    drivers::sim::Simulator sim(sim_scenario(c), c.sim.seed);
+    auto front = std::make_unique<hil::SimFrontEnd>(sim, sim_rig_config(c));
+    EXPECT_EQ(front->init(), hal::Status::kOk);
+    DaemonLike d;
+    d.log = &log;
+    core::SensorModel<double> m;
+    m.o = core::Vec3<double>(10, -20, 5);
+    d.event(session_start_event(1, fast_config_text("li")));
+    d.event(set_active_event(2, m, 4));
+    d.event(start_calibration_event(3));
+    for (int i = 0; i < steps; ++i) {
+      if (i == steps / 2) {  // SIGHUP-like new session, carrying the active calibration over
+        const CalibrationStatus st = d.ep.pipeline()->status();
+        d.event(session_start_event(4, fast_config_text("ekf")));
+        d.event(set_active_event(5, st.active, st.cal_id));
+      }
+      EXPECT_TRUE(front->rig().step());
+      front->poll(d);
+    }
+    return d.sink.records;
+  }
+
+  std::filesystem::path dir_;
+  std::string path_;
+};
+
+TEST_F(DaemonReplay, ReplayIsBitIdenticalToTheLiveRecords) {
+  const std::vector<hal::OutputRecord> live = write_log(1600);
+  VectorSink replayed, logged;
+  const ReplayResult r = replay_log(path_, replayed, &logged);
+  EXPECT_EQ(r.sessions, 2u);
+  EXPECT_EQ(r.records, live.size());
+  EXPECT_EQ(r.logged_records, live.size());
+  EXPECT_EQ(r.compared, live.size());
+  EXPECT_EQ(r.mismatches, 0u);
+  ASSERT_EQ(replayed.records.size(), live.size());
+  for (std::size_t i = 0; i < live.size(); ++i)
+    ASSERT_TRUE(bit_identical(replayed.records[i], live[i])) << i;
+  // The first session calibrated on top of the installed cal_id 4; the second kept it.
+  EXPECT_EQ(live.front().cal_id, 4u);
+  EXPECT_EQ(live[800].cal_id, 5u);
+  EXPECT_EQ(live.back().cal_id, 5u);
+  EXPECT_EQ(r.final_status.calibrator, "ekf");
+}
+
+TEST_F(DaemonReplay, AChangedSampleIsDetected) {
+  write_log(400);
+  // Rewrite the log with one magnetometer sample changed by one ulp.
+  const std::string changed = (dir_ / "changed.lcm").string();
+  {
+    lcm::LogFile in(path_, "r");
+    lcm::LogFile out(changed, "w");
+    int mags = 0;
+    const lcm::LogEvent* ev = nullptr;
+    while ((ev = in.readNextEvent()) != nullptr) {
+      lcm::LogEvent copy = *ev;
+      std::vector<std::uint8_t> buf;
+      if (ev->channel == "MAGVEC_RAW_MAG" && ++mags == 200) {
+        magvec_lcm::mag_sample m{};
+        ASSERT_GE(m.decode(ev->data, 0, ev->datalen), 0);
+        m.m_nT[1] = std::nextafter(m.m_nT[1], 1e9);
+        buf.resize(static_cast<std::size_t>(m.getEncodedSize()));
+        m.encode(buf.data(), 0, static_cast<int>(buf.size()));
+        copy.data = buf.data();
+        copy.datalen = static_cast<std::int32_t>(buf.size());
+      }
+      ASSERT_EQ(out.writeEvent(&copy), 0);
+    }
+  }
+  VectorSink replayed;
+  const ReplayResult r = replay_log(changed, replayed);
+  EXPECT_EQ(r.compared, 400u);
+  EXPECT_GE(r.mismatches, 1u);
+}
+
+TEST_F(DaemonReplay, LogWithoutSessionIsAnError) {
+  {
+    lcm::LogFile log(path_, "w");
+    const auto m = to_lcm(hal::MagnetometerSample{}, 1.0);
+    std::vector<std::uint8_t> buf(static_cast<std::size_t>(m.getEncodedSize()));
+    m.encode(buf.data(), 0, static_cast<int>(buf.size()));
+    lcm::LogEvent ev{0, 1, "MAGVEC_RAW_MAG", static_cast<std::int32_t>(buf.size()), buf.data()};
+    ASSERT_EQ(log.writeEvent(&ev), 0);
+  }
+  VectorSink s;
+  EXPECT_THROW(replay_log(path_, s), ReplayError);
+  EXPECT_THROW(replay_log((dir_ / "missing.lcm").string(), s), ReplayError);
+}
+
+}  // namespace
+}  // namespace magvec::host::daemon

@@ -216,10 +216,12 @@ hal::CanFrame encode_orientation_acc(double roll_acc_rad, double pitch_acc_rad, 
 }
 
 hal::Status CanAttitudeSource::read(hal::AttitudeSample& out, std::uint32_t timeout_us) noexcept {
-  // Bounded: at most 64 frames per call so a flooded bus cannot starve the caller.
+  // Bounded: at most 64 frames per call so a flooded bus cannot starve the caller. The timeout
+  // applies to every frame, not only the first: the frames of one epoch arrive one after another
+  // on a real bus, and a momentarily empty queue mid-epoch is not the end of the sample.
   for (int i = 0; i < 64; ++i) {
     hal::CanFrame f;
-    const hal::Status s = bus_.receive(f, i == 0 ? timeout_us : 0);
+    const hal::Status s = bus_.receive(f, timeout_us);
     if (s == hal::Status::kTimeout || s == hal::Status::kNoData) return hal::Status::kTimeout;
     if (s != hal::Status::kOk) {
       ++decoder_.counters().bus_errors;

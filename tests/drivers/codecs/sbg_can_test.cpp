@@ -205,5 +205,41 @@ TEST(SbgCan, AttitudeSourceOverCanBusWithoutAllocations) {
   EXPECT_EQ(src.counters().samples, 100u);
 }
 
+// A real bus delivers the frames of one epoch one after another: a poll between two of them finds
+// the queue empty. The source must keep waiting (within the caller's timeout) instead of
+// reporting a timeout mid-epoch.
+class TricklingCan final : public hal::CanBus {
+ public:
+  hal::Status receive(hal::CanFrame& out, std::uint32_t timeout_us) noexcept override {
+    if (next >= count) return hal::Status::kTimeout;
+    if (timeout_us == 0 && next % 4 != 0) return hal::Status::kTimeout;  // not arrived yet
+    out = frames[next++];
+    return hal::Status::kOk;
+  }
+  hal::Status send(const hal::CanFrame&) noexcept override { return hal::Status::kOk; }
+  std::array<hal::CanFrame, 8> frames{};
+  std::size_t count{0};
+  std::size_t next{0};
+};
+
+TEST(SbgCan, AttitudeSourceWaitsForTheRestOfAnEpoch) {
+  TricklingCan bus;
+  for (std::size_t i = 0; i < 2; ++i) {
+    bus.frames[4 * i] = encode_status_03(0x34, 0);
+    bus.frames[4 * i + 1] = encode_ekf_info(static_cast<std::uint32_t>(10000 * i));
+    bus.frames[4 * i + 2] = encode_orientation_acc(1e-3, 1e-3, 3e-3);
+    bus.frames[4 * i + 3] = encode_ekf_quat(
+        sbg_quat_from_r_bn(core::r_bn_from_ypr(core::YawPitchRoll<double>{0.1, 0.1, 0.2})));
+  }
+  bus.count = 8;
+  CanAttitudeSource src(bus);
+  hal::AttitudeSample s;
+  ASSERT_EQ(src.read(s, 1000), hal::Status::kOk);
+  EXPECT_EQ(s.t_ins_us, 0u);
+  ASSERT_EQ(src.read(s, 1000), hal::Status::kOk);
+  EXPECT_EQ(s.t_ins_us, 10000u);
+  EXPECT_EQ(src.read(s, 1000), hal::Status::kTimeout);
+}
+
 }  // namespace
 }  // namespace magvec::drivers::sbg

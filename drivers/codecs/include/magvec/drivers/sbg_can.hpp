@@ -133,7 +133,8 @@ class CanAttitudeSource final : public hal::AttitudeSource {
  public:
   CanAttitudeSource(hal::CanBus& bus, const DecoderConfig& config = {}) noexcept
       : bus_(bus), decoder_(config) {}
-  // Receives frames until one completes a sample or the bus has nothing within timeout_us.
+  // Receives frames until one completes a sample or the bus has nothing within timeout_us (the
+  // wait for each frame; at most 64 frames per call).
   hal::Status read(hal::AttitudeSample& out, std::uint32_t timeout_us) noexcept override;
   const hal::AttitudeCounters& counters() const noexcept override { return decoder_.counters(); }
   const CanDecoder& decoder() const noexcept { return decoder_; }

@@ -54,8 +54,8 @@ void run(const ReplayOptions& o) {
   const bool identical =
       r.logged_records == r.records && r.compared == r.records && r.mismatches == 0;
   std::cout << "  live outputs in the log: " << r.logged_records << ", compared " << r.compared
-            << ", differing " << r.mismatches << " -> "
-            << (identical ? "bit-identical" : "NOT identical") << "\n";
+            << ", differing " << r.mismatches << ", without a live counterpart " << r.uncompared
+            << " -> " << (identical ? "bit-identical" : "NOT identical") << "\n";
   if (o.check && !identical)
     throw CommandExit(3, "replayed outputs differ from the live outputs recorded in the log");
 }

@@ -44,20 +44,6 @@ struct RunOptions {
 using LiCal = core::BatchLiCalibrator<double, 512>;
 using EkfCal = core::EkfCalibrator<double, 256>;
 
-const char* failure_name(core::CalFailure f) {
-  switch (f) {
-    case core::CalFailure::kNone:
-      return "none";
-    case core::CalFailure::kSolverRejected:
-      return "solver_rejected";
-    case core::CalFailure::kValidationFailed:
-      return "validation_failed";
-    case core::CalFailure::kNoReference:
-      return "no_reference";
-  }
-  return "unknown";
-}
-
 // Calibrator-specific part of the summary.
 std::string solver_reason(const host::hil::NullCalibrator&, std::uint8_t) {
   return "none";
@@ -227,7 +213,7 @@ void run_session(const RunOptions& o, drivers::sim::Simulator& sim,
   std::cout << "  calibration: state " << core::cal_state_name(lp.state()) << ", progress "
             << lp.progress() << ", cal_id " << lp.cal_id();
   if (lp.state() == core::CalState::kFailed) {
-    std::cout << ", failure " << failure_name(lp.failure());
+    std::cout << ", failure " << core::cal_failure_name(lp.failure());
     if (lp.failure() == core::CalFailure::kSolverRejected)
       std::cout << " (" << solver_reason(cal, lp.solver_code()) << ")";
   }

@@ -72,9 +72,7 @@ GpiodDataReadyLine::~GpiodDataReadyLine() {
 }
 
 hal::Status GpiodDataReadyLine::wait_edge(hal::EdgeEvent& out, std::uint32_t timeout_us) noexcept {
-  timespec ts{};
-  ts.tv_sec = static_cast<time_t>(timeout_us / 1'000'000);
-  ts.tv_nsec = static_cast<long>((timeout_us % 1'000'000) * 1000);
+  const timespec ts = timespec_from_us(timeout_us);
   int rc = 0;
   do {
     rc = ::gpiod_line_event_wait(line_, &ts);

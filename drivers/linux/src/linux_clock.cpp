@@ -23,6 +23,13 @@ std::int64_t timespec_ns(const timespec& ts) noexcept {
   return static_cast<std::int64_t>(ts.tv_sec) * 1'000'000'000 +
          static_cast<std::int64_t>(ts.tv_nsec);
 }
+
+timespec timespec_from_us(std::uint64_t us) noexcept {
+  timespec ts{};
+  ts.tv_sec = static_cast<time_t>(us / 1'000'000);
+  ts.tv_nsec = static_cast<long>((us % 1'000'000) * 1000);
+  return ts;
+}
 std::int64_t monotonic_ns() noexcept {
   return clock_ns(CLOCK_MONOTONIC);
 }

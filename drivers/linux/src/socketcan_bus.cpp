@@ -22,13 +22,6 @@ namespace {
 constexpr std::uint32_t kStdIdMask = 0x7FFu;
 constexpr std::uint32_t kExtIdMask = 0x1FFFFFFFu;
 
-timespec to_timespec(std::uint64_t us) noexcept {
-  timespec ts{};
-  ts.tv_sec = static_cast<time_t>(us / 1'000'000);
-  ts.tv_nsec = static_cast<long>((us % 1'000'000) * 1000);
-  return ts;
-}
-
 std::string hex(std::uint32_t v) {
   char buf[16];
   std::snprintf(buf, sizeof buf, "0x%X", v);
@@ -137,7 +130,7 @@ hal::Status SocketCanBus::receive(hal::CanFrame& out, std::uint32_t timeout_us) 
       const std::uint64_t now = monotonic_us();
       if (now >= deadline) return hal::Status::kTimeout;
       pollfd pfd{fd_, POLLIN, 0};
-      const timespec ts = to_timespec(deadline - now);
+      const timespec ts = timespec_from_us(deadline - now);
       const int rc = ::ppoll(&pfd, 1, &ts, nullptr);
       if (rc < 0 && errno != EINTR) {
         assign_os_error(last_error_, name_, "poll", errno);

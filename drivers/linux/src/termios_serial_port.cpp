@@ -97,15 +97,8 @@ bool is_unplug_errno(int e) noexcept {
   return e == EIO || e == ENODEV || e == EBADF || e == ENXIO;
 }
 
-timespec to_timespec(std::uint64_t us) noexcept {
-  timespec ts{};
-  ts.tv_sec = static_cast<time_t>(us / 1'000'000);
-  ts.tv_nsec = static_cast<long>((us % 1'000'000) * 1000);
-  return ts;
-}
-
 void sleep_us(std::uint64_t us) noexcept {
-  const timespec ts = to_timespec(us);
+  const timespec ts = timespec_from_us(us);
   ::ppoll(nullptr, 0, &ts, nullptr);
 }
 
@@ -178,7 +171,7 @@ hal::Status TermiosSerialPort::read(std::span<std::uint8_t> buf, std::size_t& n_
       continue;
     }
     pollfd pfd{fd_, POLLIN, 0};
-    const timespec ts = to_timespec(remaining);
+    const timespec ts = timespec_from_us(remaining);
     const int rc = ::ppoll(&pfd, 1, &ts, nullptr);
     if (rc < 0) {
       if (errno == EINTR) continue;
@@ -240,7 +233,7 @@ hal::Status TermiosSerialPort::write(std::span<const std::uint8_t> data,
       return hal::Status::kTimeout;
     }
     pollfd pfd{fd_, POLLOUT, 0};
-    const timespec ts = to_timespec(deadline - now);
+    const timespec ts = timespec_from_us(deadline - now);
     if (::ppoll(&pfd, 1, &ts, nullptr) < 0 && errno != EINTR) {
       assign_os_error(last_error_, name_, "poll", errno);
       return hal::Status::kBusError;

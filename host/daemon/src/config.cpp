@@ -188,12 +188,12 @@ Config parse_config(const std::string& text, const std::string& source) {
   ins.integer("latency_comp_us", &c.ins.latency_comp_us, 0, 1'000'000);
   ins.boolean("require_attitude_valid", &c.ins.require_attitude_valid);
   Table ids = ins.sub("can_ids");
-  ids.integer("status_01", &c.ins.ids.status_01, 0, 0x1FFFFFFF);
-  ids.integer("status_03", &c.ins.ids.status_03, 0, 0x1FFFFFFF);
-  ids.integer("ekf_info", &c.ins.ids.ekf_info, 0, 0x1FFFFFFF);
-  ids.integer("ekf_quat", &c.ins.ids.ekf_quat, 0, 0x1FFFFFFF);
-  ids.integer("ekf_euler", &c.ins.ids.ekf_euler, 0, 0x1FFFFFFF);
-  ids.integer("ekf_orientation_acc", &c.ins.ids.ekf_orientation_acc, 0, 0x1FFFFFFF);
+  ids.integer("status_01", &c.ins.ids.status_01, 0, 0x7FF);
+  ids.integer("status_03", &c.ins.ids.status_03, 0, 0x7FF);
+  ids.integer("ekf_info", &c.ins.ids.ekf_info, 0, 0x7FF);
+  ids.integer("ekf_quat", &c.ins.ids.ekf_quat, 0, 0x7FF);
+  ids.integer("ekf_euler", &c.ins.ids.ekf_euler, 0, 0x7FF);
+  ids.integer("ekf_orientation_acc", &c.ins.ids.ekf_orientation_acc, 0, 0x7FF);
   ids.check_unknown();
   ins.check_unknown();
   dev.check_unknown();

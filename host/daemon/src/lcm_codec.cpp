@@ -148,7 +148,7 @@ magvec_lcm::calibration_state to_lcm(const CalibrationStatus& s, std::uint64_t t
   m.t_us = static_cast<std::int64_t>(t_us);
   m.calibrator = s.calibrator;
   m.state = core::cal_state_name(s.state);
-  m.failure = cal_failure_name(s.failure);
+  m.failure = core::cal_failure_name(s.failure);
   m.solver_reason = s.solver_reason;
   m.progress = s.progress;
   m.validation_rms_nT = s.validation_rms_nT;

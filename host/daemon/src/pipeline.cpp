@@ -68,20 +68,6 @@ class PipelineImpl final : public Pipeline {
 
 }  // namespace
 
-const char* cal_failure_name(core::CalFailure f) noexcept {
-  switch (f) {
-    case core::CalFailure::kNone:
-      return "none";
-    case core::CalFailure::kSolverRejected:
-      return "solver_rejected";
-    case core::CalFailure::kValidationFailed:
-      return "validation_failed";
-    case core::CalFailure::kNoReference:
-      return "no_reference";
-  }
-  return "unknown";
-}
-
 std::unique_ptr<Pipeline> Pipeline::create(const Config& config, hal::RecordSink& sink) {
   const CalibrationConfig& cc = config.calibration;
   const hil::HilConfig hc = hil_config(config);

@@ -16,15 +16,26 @@ class TeeSink final : public hal::RecordSink {
   TeeSink(hal::RecordSink& out, std::deque<hal::OutputRecord>* queue) : out_(out), queue_(queue) {}
   hal::Status emit(const hal::OutputRecord& r) noexcept override {
     ++count_;
-    if (queue_ != nullptr) queue_->push_back(r);
+    if (queue_ != nullptr) {
+      // The live outputs follow their inputs in the log within a few events; a log without them
+      // (output channel not recorded) must not keep every replayed record in memory.
+      if (queue_->size() >= kMaxPending) {
+        queue_->pop_front();
+        ++dropped_;
+      }
+      queue_->push_back(r);
+    }
     return out_.emit(r);
   }
+  std::uint64_t dropped() const noexcept { return dropped_; }
   std::uint64_t count() const noexcept { return count_; }
 
  private:
+  static constexpr std::size_t kMaxPending = 1u << 16;
   hal::RecordSink& out_;
   std::deque<hal::OutputRecord>* queue_;
   std::uint64_t count_{0};
+  std::uint64_t dropped_{0};
 };
 
 template <typename Msg>
@@ -107,6 +118,7 @@ ReplayResult replay_log(const std::string& path, hal::RecordSink& sink,
                       " (not a magvecd log, or the recording started after the daemon)");
   r.sessions = ep.sessions();
   r.records = tee.count();
+  r.uncompared = tee.dropped() + replayed.size();
   r.skipped_before_session = ep.skipped_before_session();
   if (ep.pipeline() != nullptr) {
     r.have_status = true;

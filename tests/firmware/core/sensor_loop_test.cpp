@@ -114,6 +114,32 @@ TEST(SensorLoop, KeepsThePreviousCalibrationWhenTheNewOneFailsValidation) {
   EXPECT_EQ(loop.health().calibrations_failed, 1u);
 }
 
+// Records carry cal_id to say which calibration produced them: after a revert to an older
+// calibration, the next applied one must not reuse the id of the calibration reverted from.
+TEST(SensorLoop, CalibrationIdsAreNeverReusedAfterARevert) {
+  FakeCalibrator cal;
+  cal.result = truth_model();
+  LoopConfig<double> cfg;
+  cfg.noise_nT = 0.3;
+  cfg.validate_against_active = false;
+  SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+  Feed feed;
+  Mat3<double> r;
+  auto calibrate = [&] {
+    loop.start_calibration();
+    for (int i = 0; i < 400 && loop.state() != CalState::kApplied; ++i)
+      (void)loop.process(feed.next(truth_model(), &r), &r);
+    return loop.state();
+  };
+  loop.set_active(truth_model(), 1);  // the persisted calibration
+  ASSERT_EQ(calibrate(), CalState::kApplied);
+  EXPECT_EQ(loop.cal_id(), 2u);
+  loop.set_active(truth_model(), 1);  // revert to the persisted one
+  EXPECT_EQ(loop.cal_id(), 1u);
+  ASSERT_EQ(calibrate(), CalState::kApplied);
+  EXPECT_EQ(loop.cal_id(), 3u);  // not 2 again
+}
+
 TEST(SensorLoop, ReportsSolverRefusalWithItsCode) {
   FakeCalibrator cal;
   cal.refuse = true;

@@ -183,6 +183,10 @@ TEST(DaemonConfig, ErrorsNameTheKey) {
             std::string::npos);
   EXPECT_NE(error_of("[devices.magnetometer]\nnT_per_volt = [1, 2]\n").find("array of 3"),
             std::string::npos);
+  // The SBG decoder takes standard (11-bit) identifiers only: a 29-bit one is refused here, not
+  // later as a confusing CAN filter error when the device opens.
+  EXPECT_NE(error_of("[devices.ins.can_ids]\nekf_quat = 0x1234\n").find("ekf_quat: out of range"),
+            std::string::npos);
   EXPECT_NE(error_of("[daemon\nstate_dir=").find("cfg.toml:1"), std::string::npos);
   EXPECT_EQ(error_of(""), "no error");  // every key is optional
 }
@@ -280,6 +284,7 @@ TEST_F(DaemonReplay, ReplayIsBitIdenticalToTheLiveRecords) {
   EXPECT_EQ(r.logged_records, live.size());
   EXPECT_EQ(r.compared, live.size());
   EXPECT_EQ(r.mismatches, 0u);
+  EXPECT_EQ(r.uncompared, 0u);
   ASSERT_EQ(replayed.records.size(), live.size());
   for (std::size_t i = 0; i < live.size(); ++i)
     ASSERT_TRUE(bit_identical(replayed.records[i], live[i])) << i;

@@ -62,6 +62,20 @@ enum class CalFailure : std::uint8_t {
   kNoReference,       // validation needs a scalar reference and none arrived
 };
 
+constexpr const char* cal_failure_name(CalFailure f) noexcept {
+  switch (f) {
+    case CalFailure::kNone:
+      return "none";
+    case CalFailure::kSolverRejected:
+      return "solver_rejected";
+    case CalFailure::kValidationFailed:
+      return "validation_failed";
+    case CalFailure::kNoReference:
+      return "no_reference";
+  }
+  return "unknown";
+}
+
 enum class CalibratorAdd : std::uint8_t { kUsed, kGated, kRejected };
 
 struct CalibratorSolve {
@@ -117,10 +131,13 @@ class SensorLoop {
   SensorLoop(Calibrator& calibrator, const LoopConfig<Scalar>& config) noexcept
       : calibrator_(calibrator), config_(config) {}
 
-  // Installs a calibration (e.g. loaded from the ParamStore) as the active one.
+  // Installs a calibration (e.g. loaded from the ParamStore) as the active one. The next applied
+  // calibration gets an id above every id seen so far, so reverting to an older calibration never
+  // lets a later, different one reuse an id that records already carry.
   void set_active(const SensorModel<Scalar>& model, std::uint32_t cal_id) noexcept {
     active_.set_model(model);
     cal_id_ = cal_id;
+    if (cal_id > max_cal_id_) max_cal_id_ = cal_id;
   }
   const SensorModel<Scalar>& active_model() const noexcept { return active_.model(); }
   std::uint32_t cal_id() const noexcept { return cal_id_; }
@@ -243,7 +260,7 @@ class SensorLoop {
     const bool better = cal_id_ == 0 || !config_.validate_against_active || rms_c <= rms_a;
     if (rms_c <= bound && better) {
       active_ = candidate_;
-      ++cal_id_;
+      cal_id_ = ++max_cal_id_;
       ++health_.calibrations_applied;
       state_ = CalState::kApplied;
     } else {
@@ -263,6 +280,7 @@ class SensorLoop {
   Compensator<Scalar> active_{};
   Compensator<Scalar> candidate_{};
   std::uint32_t cal_id_{0};
+  std::uint32_t max_cal_id_{0};  // highest id installed or issued (ids are never reused)
   CalState state_{CalState::kIdle};
   CalFailure failure_{CalFailure::kNone};
   std::uint8_t solver_code_{0};

@@ -15,6 +15,8 @@ std::uint64_t monotonic_us() noexcept;
 std::int64_t monotonic_ns() noexcept;
 std::int64_t realtime_ns() noexcept;
 std::int64_t timespec_ns(const timespec& ts) noexcept;
+// A duration in microseconds as a timespec (for ppoll/pselect/gpiod waits).
+timespec timespec_from_us(std::uint64_t us) noexcept;
 
 // Converts a CLOCK_REALTIME kernel timestamp onto the CLOCK_MONOTONIC base by the current
 // offset between the two clocks (sampled now; a later NTP step between the event and this call is

@@ -31,8 +31,6 @@ struct CalibrationStatus {
   core::SensorModel<double> active{};
 };
 
-const char* cal_failure_name(core::CalFailure f) noexcept;
-
 class Pipeline {
  public:
   // Throws ConfigError for an unknown calibration mode.

@@ -30,6 +30,7 @@ struct ReplayResult {
   std::uint64_t logged_records{0};  // live records found in the log
   std::uint64_t compared{0};        // pairs compared (in order)
   std::uint64_t mismatches{0};      // pairs that differ in any bit
+  std::uint64_t uncompared{0};      // replayed records without a logged counterpart
   std::uint64_t decode_errors{0};
   std::uint64_t skipped_before_session{0};
   bool have_status{false};

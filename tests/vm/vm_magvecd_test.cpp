@@ -47,8 +47,10 @@
 #include "magvec/host/daemon/pipeline.hpp"
 #include "magvec/host/daemon/sim_setup.hpp"
 #include "magvec/host/hil/hil_session.hpp"
+#include "magvec_lcm/attitude.hpp"
 #include "magvec_lcm/calibrated_vector.hpp"
 #include "magvec_lcm/calibration_state.hpp"
+#include "magvec_lcm/health.hpp"
 #include "vm_env.hpp"
 
 namespace {
@@ -188,6 +190,9 @@ struct Run {
   std::uint32_t fed{0};
   std::vector<OutputSample> outputs;
   std::vector<magvec_lcm::calibration_state> states;
+  std::vector<magvec_lcm::attitude> attitudes;
+  magvec_lcm::health health{};
+  bool have_health{false};
   std::vector<OutputSample> reference;
   Eigen::Vector3d h_true{Eigen::Vector3d::Zero()};
   bool h_constant{true};
@@ -202,6 +207,8 @@ class Subscriber {
   void start() {
     lcm_.subscribe("MAGVEC_OUTPUT", &Subscriber::on_output, this);
     lcm_.subscribe("MAGVEC_CAL_STATE", &Subscriber::on_state, this);
+    lcm_.subscribe("MAGVEC_ATTITUDE", &Subscriber::on_attitude, this);
+    lcm_.subscribe("MAGVEC_HEALTH", &Subscriber::on_health, this);
     thread_ = std::thread([this] {
       while (!stop_)
         lcm_.handleTimeout(50);
@@ -229,6 +236,16 @@ class Subscriber {
                 const magvec_lcm::calibration_state* m) {
     std::lock_guard<std::mutex> lock(mu_);
     run_.states.push_back(*m);
+  }
+
+  void on_attitude(const lcm::ReceiveBuffer*, const std::string&, const magvec_lcm::attitude* m) {
+    std::lock_guard<std::mutex> lock(mu_);
+    run_.attitudes.push_back(*m);
+  }
+  void on_health(const lcm::ReceiveBuffer*, const std::string&, const magvec_lcm::health* m) {
+    std::lock_guard<std::mutex> lock(mu_);
+    run_.health = *m;
+    run_.have_health = true;
   }
 
   Run& run_;
@@ -429,6 +446,22 @@ TEST_F(MagvecdVm, PublishesOneOutputPerConversionAtTheRate) {
   std::size_t no_att = 0;
   for (const OutputSample& s : o)
     no_att += (s.flags & kNoAttitudeFlag) != 0 ? 1 : 0;
+  const auto& h = g_run.health;
+  std::printf(
+      "attitude messages: %zu; health: mag %lld (crc %lld, not fresh %lld, missing %lld, "
+      "time jumps %lld), att %lld (malformed %lld, invalid %lld, gaps %lld, rejected "
+      "%lld), no attitude %lld\n",
+      g_run.attitudes.size(), static_cast<long long>(h.mag_samples),
+      static_cast<long long>(h.mag_crc_errors), static_cast<long long>(h.mag_not_fresh),
+      static_cast<long long>(h.mag_missing), static_cast<long long>(h.mag_time_jumps),
+      static_cast<long long>(h.att_samples), static_cast<long long>(h.att_malformed),
+      static_cast<long long>(h.att_invalid), static_cast<long long>(h.att_gaps),
+      static_cast<long long>(h.att_rejected), static_cast<long long>(h.no_attitude));
+  for (std::size_t i = 0; i < std::min<std::size_t>(3, g_run.attitudes.size()); ++i)
+    std::printf("attitude %zu: t %lld us, flags %d; output %zu: t %lld us\n", i,
+                static_cast<long long>(g_run.attitudes[i].t_us), g_run.attitudes[i].flags, i,
+                i < o.size() ? static_cast<long long>(o[i].t_us) : -1LL);
+  EXPECT_GE(g_run.attitudes.size(), static_cast<std::size_t>(0.98 * kSamples));
   EXPECT_LE(no_att, o.size() / 50) << "outputs without attitude";
 }
 

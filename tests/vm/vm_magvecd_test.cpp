@@ -462,6 +462,20 @@ TEST_F(MagvecdVm, PublishesOneOutputPerConversionAtTheRate) {
                 static_cast<long long>(g_run.attitudes[i].t_us), g_run.attitudes[i].flags, i,
                 i < o.size() ? static_cast<long long>(o[i].t_us) : -1LL);
   EXPECT_GE(g_run.attitudes.size(), static_cast<std::size_t>(0.98 * kSamples));
+  std::string dropouts;
+  for (std::size_t i = 0; i < o.size(); ++i)
+    if ((o[i].flags & magvec::core::kOutDropout) != 0) dropouts += " " + std::to_string(i);
+  std::printf("outputs flagged dropout (not fresh):%s\n",
+              dropouts.empty() ? " none" : dropouts.c_str());
+  ASSERT_TRUE(g_run.have_health) << "no MAGVEC_HEALTH message";
+  EXPECT_EQ(h.mag_crc_errors, 0);
+  EXPECT_EQ(h.att_malformed, 0);
+  EXPECT_EQ(h.att_rejected, 0);
+  // Not fresh: the daemon read a conversion only after the next one was latched: the late edge
+  // gets the newer codes, the following edge repeats them with DRDY clear. Seen twice per run,
+  // at samples 102-103: the li solve (100 samples) runs in the acquisition loop and, under
+  // emulation, blocks it for more than a sample period. Bounded here, not hidden.
+  EXPECT_LE(h.mag_not_fresh, static_cast<std::int64_t>(kSamples / 50));
   EXPECT_LE(no_att, o.size() / 50) << "outputs without attitude";
 }
 

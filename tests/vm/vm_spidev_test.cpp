@@ -3,8 +3,14 @@
 // device as /dev/spidev0.0) through the ADS131M04 codec and the Ads131Fluxgate driver, with the
 // data-ready line on gpio-sim. The model's samples are deterministic (ch0 = 2^22 cos(n deg),
 // ch1 = 2^22 sin(n deg), ch2 = 0x100000, ch3 = n for conversion n), CRC errors are injected
-// through the module parameter crc_error_every.
+// through the module parameter crc_error_every. The feed (/dev/magvec_adc_feed, used by the
+// magvecd end-to-end test) latches written conversions instead of the pattern.
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <array>
 #include <cmath>
+#include <cstdint>
 #include <memory>
 #include <numbers>
 #include <string>
@@ -169,6 +175,39 @@ TEST(SpidevVm, FluxgateReadsOnGpioSimDataReadyAndCountsCrcErrors) {
   EXPECT_EQ(fluxgate.counters().crc_errors, 8u);
   EXPECT_EQ(fluxgate.counters().timeouts, 0u);
   ASSERT_TRUE(vmtest::write_sysfs(pull, "pull-down"));
+}
+
+// The feed: a written conversion is served once with DRDY set, then repeated with DRDY clear
+// (not new data); a short write is refused; closing the feed restores the rotating pattern.
+TEST(SpidevVm, FeedLatchesWrittenConversionsAndFlagsRepeatsNotNew) {
+  auto spi = open_spi();
+  ASSERT_TRUE(spi);
+  const std::string path = vmtest::env("MAGVEC_TEST_ADC_FEED", "/dev/magvec_adc_feed");
+  const int fd = ::open(path.c_str(), O_WRONLY);
+  ASSERT_GE(fd, 0) << path;
+  EXPECT_LT(::open(path.c_str(), O_WRONLY), 0) << "a second feeder must be refused (EBUSY)";
+  ads::Response r;
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);  // flush the previous command's answer
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  EXPECT_EQ(r.response & ads::kStatusDrdyMask, 0) << "nothing fed yet: not new";
+  const std::array<std::int32_t, 4> codes[2] = {{-8388608, 8388607, 123456, -1}, {1, -2, 3, -4}};
+  for (const auto& c : codes) {
+    ASSERT_EQ(::write(fd, c.data(), sizeof c), static_cast<ssize_t>(sizeof c));
+    ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+    EXPECT_EQ(r.response & ads::kStatusDrdyMask, ads::kStatusDrdyMask);
+    for (std::size_t ch = 0; ch < 4; ++ch)
+      EXPECT_EQ(r.codes[ch], c[ch]) << "ch " << ch;
+    ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+    EXPECT_EQ(r.response & ads::kStatusDrdyMask, 0) << "repeat must be flagged not new";
+    for (std::size_t ch = 0; ch < 4; ++ch)
+      EXPECT_EQ(r.codes[ch], c[ch]) << "ch " << ch;
+  }
+  EXPECT_LT(::write(fd, codes[0].data(), 5), 0) << "partial conversion accepted";
+  ::close(fd);
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  EXPECT_EQ(r.response & ads::kStatusDrdyMask, ads::kStatusDrdyMask);
+  expect_model(r, r.codes[3]);  // the pattern is back
 }
 
 TEST(SpidevVm, MissingDeviceGivesClearError) {

@@ -16,10 +16,12 @@
  *   ch0 = fixp_cos32(n) >> 9, ch1 = fixp_sin32(n) >> 9, ch2 = 0x100000, ch3 = n mod 2^23,
  * so a reader can check values and detect lost or repeated frames (ch3).
  * Feed (daemon end-to-end test): while /dev/magvec_adc_feed is open, the device answers with
- * conversions written there instead: each write of 16 bytes (4 x s32, native endianness: ch0..3
- * codes) latches one conversion, as the real ADC latches its result registers; the next data frame
- * carries it with STATUS.DRDY0..3 set, later data frames repeat it with DRDY clear (not new data).
- * Closing the feed returns to the rotating pattern.
+ * conversions written there instead: each 16-byte record (4 x s32, native endianness: ch0..3
+ * codes) is one conversion, queued in a FIFO of FEED_DEPTH; each data frame takes the oldest with
+ * STATUS.DRDY0..3 set; with the FIFO empty it repeats the last one with DRDY clear (not new data).
+ * A FIFO (not the real ADC's single result latch) keeps conversion k paired with the k-th data
+ * frame when the reader runs late under emulation, so the test judges the daemon, not the VM's
+ * scheduling. A full FIFO refuses the write (-ENOSPC). Closing the feed returns to the pattern.
  * Fault injection: with crc_error_every = N > 0, every Nth data frame has one data byte flipped
  * after its CRC was computed (writable at run time in /sys/module/magvec_vspi/parameters/).
  */
@@ -70,9 +72,12 @@ static bool reset_flag = true;
 /* Feed state (written by user space, read by transfer_one): feed_lock. */
 static DEFINE_SPINLOCK(feed_lock);
 static atomic_t feed_open = ATOMIC_INIT(0);
+#define FEED_DEPTH 256
 static bool feed_active;
-static bool feed_fresh;
-static s32 feed_codes[4];
+static s32 feed_fifo[FEED_DEPTH][4];
+static unsigned int feed_head;  /* oldest */
+static unsigned int feed_count;
+static s32 feed_last[4];        /* the last conversion served */
 
 static u16 crc16_ccitt(const u8* p, size_t n) {
   u16 crc = 0xFFFF;
@@ -112,11 +117,17 @@ static void build_frame(u8* out) {
   spin_lock_irqsave(&feed_lock, flags);
   fed = feed_active;
   if (fed) {
-    memcpy(codes, feed_codes, sizeof(codes));
-    if (!feed_fresh) drdy = 0;
-    if (data && feed_fresh) {
-      feed_fresh = false;
-      ++fed_frames;
+    if (feed_count > 0) {
+      memcpy(codes, feed_fifo[feed_head], sizeof(codes));
+      if (data) {
+        memcpy(feed_last, codes, sizeof(codes));
+        feed_head = (feed_head + 1) % FEED_DEPTH;
+        --feed_count;
+        ++fed_frames;
+      }
+    } else {
+      memcpy(codes, feed_last, sizeof(codes));
+      drdy = 0;
     }
   }
   spin_unlock_irqrestore(&feed_lock, flags);
@@ -165,8 +176,9 @@ static int feed_open_fn(struct inode* inode, struct file* file) {
   if (atomic_cmpxchg(&feed_open, 0, 1) != 0) return -EBUSY; /* one feeder at a time */
   spin_lock_irqsave(&feed_lock, flags);
   feed_active = true;
-  feed_fresh = false;
-  memset(feed_codes, 0, sizeof(feed_codes));
+  feed_head = 0;
+  feed_count = 0;
+  memset(feed_last, 0, sizeof(feed_last));
   spin_unlock_irqrestore(&feed_lock, flags);
   return 0;
 }
@@ -176,24 +188,31 @@ static int feed_release_fn(struct inode* inode, struct file* file) {
 
   spin_lock_irqsave(&feed_lock, flags);
   feed_active = false;
-  feed_fresh = false;
+  feed_count = 0;
   spin_unlock_irqrestore(&feed_lock, flags);
   atomic_set(&feed_open, 0);
   return 0;
 }
 
-/* Each 16-byte record is one conversion; the last one of a write stays latched. */
+/* Each 16-byte record is one conversion, queued; all or nothing per write. */
 static ssize_t feed_write_fn(struct file* file, const char __user* buf, size_t len, loff_t* pos) {
   s32 codes[4];
   unsigned long flags;
   size_t done = 0;
 
   if (len == 0 || len % sizeof(codes) != 0) return -EINVAL;
-  while (done < len) {
-    if (copy_from_user(codes, buf + done, sizeof(codes))) return -EFAULT;
+  if (len / sizeof(codes) > FEED_DEPTH) return -ENOSPC;
+  spin_lock_irqsave(&feed_lock, flags);
+  if (feed_count + len / sizeof(codes) > FEED_DEPTH) {
+    spin_unlock_irqrestore(&feed_lock, flags);
+    return -ENOSPC;
+  }
+  spin_unlock_irqrestore(&feed_lock, flags);
+  while (done < len) { /* only this (single) feeder adds: the room checked above stays */
+    if (copy_from_user(codes, buf + done, sizeof(codes))) return done ? (ssize_t)done : -EFAULT;
     spin_lock_irqsave(&feed_lock, flags);
-    memcpy(feed_codes, codes, sizeof(codes));
-    feed_fresh = true;
+    memcpy(feed_fifo[(feed_head + feed_count) % FEED_DEPTH], codes, sizeof(codes));
+    ++feed_count;
     ++fed_conversions;
     spin_unlock_irqrestore(&feed_lock, flags);
     done += sizeof(codes);

@@ -27,6 +27,7 @@
 #include <chrono>
 #include <csignal>
 #include <cstring>
+#include <deque>
 #include <filesystem>
 #include <functional>
 #include <lcm/lcm-cpp.hpp>
@@ -248,7 +249,8 @@ class SimDevices final : public Devices {
 // Real devices through the Linux transports.
 class RealDevices final : public Devices {
  public:
-  explicit RealDevices(const Config& c) : reference_nT_(c.calibration.reference_field_nT) {
+  explicit RealDevices(const Config& c)
+      : latency_comp_us_(c.ins.latency_comp_us), reference_nT_(c.calibration.reference_field_nT) {
     drivers::OsError err;
     const auto& m = c.magnetometer;
     if (m.link == "spi") {
@@ -305,16 +307,30 @@ class RealDevices final : public Devices {
                 ", SBG INS on " + c.ins.can_interface;
   }
 
+  // The two kernel-timestamped streams (INS frames, DRDY edges) are fed in timestamp order,
+  // whatever the scheduling: an INS sample is fed before a magnetometer sample only if its
+  // validity time is not later than the sample's, so a stall of the daemon (several edges and
+  // epochs queued) cannot let a later epoch into the interpolation of an earlier sample. When
+  // the read times out no edge is pending, and any later edge is newer than every INS sample
+  // received so far: all of them are fed. (Found in the VM end-to-end test: feeding the INS
+  // frames only before the DRDY wait left 96 % of the samples without attitude; feeding all
+  // queued frames after a stall put later epochs into the interpolation.)
   bool poll(EventHandler& h, std::uint32_t max_wait_us) override {
-    hal::AttitudeSample a;
-    for (int guard = 0; guard < 256 && ins_->read(a, 0) == hal::Status::kOk; ++guard)
-      h.on_attitude(a);
+    drain_ins();
     hal::MagnetometerSample s;
     const hal::Status st = mag_->read(s, max_wait_us);
     if (st == hal::Status::kOk) {
+      drain_ins();
+      while (!pending_.empty() && pending_.front().t_us <= s.t_us + latency_comp_us_) {
+        h.on_attitude(pending_.front());
+        pending_.pop_front();
+      }
       h.on_magnetometer(s, reference_nT_);
-    } else if (st != hal::Status::kTimeout && st != hal::Status::kNoData) {
-      h.on_read_error(st);
+    } else {
+      for (const hal::AttitudeSample& a : pending_)
+        h.on_attitude(a);
+      pending_.clear();
+      if (st != hal::Status::kTimeout && st != hal::Status::kNoData) h.on_read_error(st);
     }
     if (wait) wait(0);
     return true;
@@ -325,6 +341,17 @@ class RealDevices final : public Devices {
   std::function<void(std::uint32_t)> wait;
 
  private:
+  // INS samples received but not yet fed (newer than the last magnetometer sample); bounded.
+  void drain_ins() {
+    hal::AttitudeSample a;
+    for (int guard = 0; guard < 256 && ins_->read(a, 0) == hal::Status::kOk; ++guard) {
+      if (pending_.size() >= kMaxPending) pending_.pop_front();  // counted by the gap check
+      pending_.push_back(a);
+    }
+  }
+  static constexpr std::size_t kMaxPending = 256;
+  std::deque<hal::AttitudeSample> pending_;
+  std::uint64_t latency_comp_us_;
   double reference_nT_;
   drivers::LinuxClock clock_;
   std::unique_ptr<drivers::SpidevBus> spi_;

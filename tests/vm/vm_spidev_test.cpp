@@ -3,8 +3,15 @@
 // device as /dev/spidev0.0) through the ADS131M04 codec and the Ads131Fluxgate driver, with the
 // data-ready line on gpio-sim. The model's samples are deterministic (ch0 = 2^22 cos(n deg),
 // ch1 = 2^22 sin(n deg), ch2 = 0x100000, ch3 = n for conversion n), CRC errors are injected
-// through the module parameter crc_error_every.
+// through the module parameter crc_error_every. The feed (/dev/magvec_adc_feed, used by the
+// magvecd end-to-end test) serves written conversions instead of the pattern.
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <array>
 #include <cmath>
+#include <cstdint>
 #include <memory>
 #include <numbers>
 #include <string>
@@ -169,6 +176,45 @@ TEST(SpidevVm, FluxgateReadsOnGpioSimDataReadyAndCountsCrcErrors) {
   EXPECT_EQ(fluxgate.counters().crc_errors, 8u);
   EXPECT_EQ(fluxgate.counters().timeouts, 0u);
   ASSERT_TRUE(vmtest::write_sysfs(pull, "pull-down"));
+}
+
+// The feed: written conversions are served in order, one per data frame, with DRDY set; with
+// the FIFO empty the last one is repeated with DRDY clear (not new data); a partial record is
+// refused; closing the feed restores the rotating pattern.
+TEST(SpidevVm, FeedServesWrittenConversionsInOrderAndFlagsRepeatsNotNew) {
+  auto spi = open_spi();
+  ASSERT_TRUE(spi);
+  const std::string path = vmtest::env("MAGVEC_TEST_ADC_FEED", "/dev/magvec_adc_feed");
+  const int fd = ::open(path.c_str(), O_WRONLY);
+  ASSERT_GE(fd, 0) << path;
+  EXPECT_LT(::open(path.c_str(), O_WRONLY), 0) << "a second feeder must be refused (EBUSY)";
+  ads::Response r;
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);  // flush the previous command's answer
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  EXPECT_EQ(r.response & ads::kStatusDrdyMask, 0) << "nothing fed yet: not new";
+  const std::array<std::array<std::int32_t, 4>, 3> codes = {
+      {{-8388608, 8388607, 123456, -1}, {1, -2, 3, -4}, {5, 6, 7, 8}}};
+  // One conversion per write, then two in one write.
+  std::array<std::int32_t, 12> flat{};
+  for (std::size_t k = 0; k < 12; ++k)
+    flat[k] = codes[k / 4][k % 4];
+  const ssize_t record = 4 * sizeof(std::int32_t);
+  ASSERT_EQ(::write(fd, flat.data(), record), record);
+  ASSERT_EQ(::write(fd, flat.data() + 4, 2 * record), 2 * record);
+  EXPECT_LT(::write(fd, codes[0].data(), 5), 0) << "partial conversion accepted";
+  for (std::size_t k = 0; k < 4; ++k) {
+    const std::size_t expect = std::min<std::size_t>(k, 2);
+    ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+    EXPECT_EQ(r.response & ads::kStatusDrdyMask, k < 3 ? ads::kStatusDrdyMask : 0)
+        << "frame " << k << (k < 3 ? ": new data" : ": a repeat must be flagged not new");
+    for (std::size_t ch = 0; ch < 4; ++ch)
+      EXPECT_EQ(r.codes[ch], codes[expect][ch]) << "frame " << k << " ch " << ch;
+  }
+  ::close(fd);
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  EXPECT_EQ(r.response & ads::kStatusDrdyMask, ads::kStatusDrdyMask);
+  expect_model(r, r.codes[3]);  // the pattern is back
 }
 
 TEST(SpidevVm, MissingDeviceGivesClearError) {

@@ -15,14 +15,24 @@
  * one degree per conversion,
  *   ch0 = fixp_cos32(n) >> 9, ch1 = fixp_sin32(n) >> 9, ch2 = 0x100000, ch3 = n mod 2^23,
  * so a reader can check values and detect lost or repeated frames (ch3).
+ * Feed (daemon end-to-end test): while /dev/magvec_adc_feed is open, the device answers with
+ * conversions written there instead: each 16-byte record (4 x s32, native endianness: ch0..3
+ * codes) is one conversion, queued in a FIFO of FEED_DEPTH; each data frame takes the oldest with
+ * STATUS.DRDY0..3 set; with the FIFO empty it repeats the last one with DRDY clear (not new data).
+ * A FIFO (not the real ADC's single result latch) keeps conversion k paired with the k-th data
+ * frame when the reader runs late under emulation, so the test judges the daemon, not the VM's
+ * scheduling. A full FIFO refuses the write (-ENOSPC). Closing the feed returns to the pattern.
  * Fault injection: with crc_error_every = N > 0, every Nth data frame has one data byte flipped
  * after its CRC was computed (writable at run time in /sys/module/magvec_vspi/parameters/).
  */
 #include <linux/bug.h> /* fixp-arith.h uses BUG_ON without including it */
 #include <linux/fixp-arith.h>
+#include <linux/miscdevice.h>
 #include <linux/module.h>
 #include <linux/platform_device.h>
 #include <linux/spi/spi.h>
+#include <linux/spinlock.h>
+#include <linux/uaccess.h>
 
 #define FRAME_BYTES 18
 #define RESET_RESPONSE 0xFF24
@@ -39,6 +49,12 @@ MODULE_PARM_DESC(data_frames, "data frames (conversions) sent");
 static unsigned int crc_errors_injected;
 module_param(crc_errors_injected, uint, 0444);
 MODULE_PARM_DESC(crc_errors_injected, "data frames sent with a corrupted byte");
+static unsigned int fed_conversions;
+module_param(fed_conversions, uint, 0444);
+MODULE_PARM_DESC(fed_conversions, "conversions written to /dev/magvec_adc_feed");
+static unsigned int fed_frames;
+module_param(fed_frames, uint, 0444);
+MODULE_PARM_DESC(fed_frames, "data frames that carried a fed conversion as new data");
 static unsigned int gain1;
 module_param(gain1, uint, 0444);
 MODULE_PARM_DESC(gain1, "GAIN1 register as last written by WREG");
@@ -52,6 +68,16 @@ static struct spi_device* vspi_loop;
 static u16 pending_response;
 static bool pending_is_status = true;
 static bool reset_flag = true;
+
+/* Feed state (written by user space, read by transfer_one): feed_lock. */
+static DEFINE_SPINLOCK(feed_lock);
+static atomic_t feed_open = ATOMIC_INIT(0);
+#define FEED_DEPTH 256
+static bool feed_active;
+static s32 feed_fifo[FEED_DEPTH][4];
+static unsigned int feed_head;  /* oldest */
+static unsigned int feed_count;
+static s32 feed_last[4];        /* the last conversion served */
 
 static u16 crc16_ccitt(const u8* p, size_t n) {
   u16 crc = 0xFFFF;
@@ -83,13 +109,40 @@ static void build_frame(u8* out) {
   bool data = pending_is_status;
   u16 response = pending_response;
   u32 n = data_frames;
+  s32 codes[4];
+  u16 drdy = STATUS_DRDY;
+  unsigned long flags;
+  bool fed;
 
-  if (data) response = STATUS_WLENGTH24 | STATUS_DRDY | (reset_flag ? STATUS_RESET : 0);
+  spin_lock_irqsave(&feed_lock, flags);
+  fed = feed_active;
+  if (fed) {
+    if (feed_count > 0) {
+      memcpy(codes, feed_fifo[feed_head], sizeof(codes));
+      if (data) {
+        memcpy(feed_last, codes, sizeof(codes));
+        feed_head = (feed_head + 1) % FEED_DEPTH;
+        --feed_count;
+        ++fed_frames;
+      }
+    } else {
+      memcpy(codes, feed_last, sizeof(codes));
+      drdy = 0;
+    }
+  }
+  spin_unlock_irqrestore(&feed_lock, flags);
+  if (!fed) {
+    codes[0] = fixp_cos32((int)(n % 360)) >> 9;
+    codes[1] = fixp_sin32((int)(n % 360)) >> 9;
+    codes[2] = 0x100000;
+    codes[3] = (s32)(n & 0x7FFFFF);
+  }
+  if (data) response = STATUS_WLENGTH24 | drdy | (reset_flag ? STATUS_RESET : 0);
   put16(out, response);
-  put24(out + 3, fixp_cos32((int)(n % 360)) >> 9);
-  put24(out + 6, fixp_sin32((int)(n % 360)) >> 9);
-  put24(out + 9, 0x100000);
-  put24(out + 12, (s32)(n & 0x7FFFFF));
+  put24(out + 3, codes[0]);
+  put24(out + 6, codes[1]);
+  put24(out + 9, codes[2]);
+  put24(out + 12, codes[3]);
   put16(out + 15, crc16_ccitt(out, 15));
   if (response == RESET_RESPONSE) reset_flag = false;
   if (data) {
@@ -116,6 +169,71 @@ static void decode_command(const u8* tx, unsigned int len) {
     pending_is_status = true;
   }
 }
+
+static int feed_open_fn(struct inode* inode, struct file* file) {
+  unsigned long flags;
+
+  if (atomic_cmpxchg(&feed_open, 0, 1) != 0) return -EBUSY; /* one feeder at a time */
+  spin_lock_irqsave(&feed_lock, flags);
+  feed_active = true;
+  feed_head = 0;
+  feed_count = 0;
+  memset(feed_last, 0, sizeof(feed_last));
+  spin_unlock_irqrestore(&feed_lock, flags);
+  return 0;
+}
+
+static int feed_release_fn(struct inode* inode, struct file* file) {
+  unsigned long flags;
+
+  spin_lock_irqsave(&feed_lock, flags);
+  feed_active = false;
+  feed_count = 0;
+  spin_unlock_irqrestore(&feed_lock, flags);
+  atomic_set(&feed_open, 0);
+  return 0;
+}
+
+/* Each 16-byte record is one conversion, queued; all or nothing per write. */
+static ssize_t feed_write_fn(struct file* file, const char __user* buf, size_t len, loff_t* pos) {
+  s32 codes[4];
+  unsigned long flags;
+  size_t done = 0;
+
+  if (len == 0 || len % sizeof(codes) != 0) return -EINVAL;
+  if (len / sizeof(codes) > FEED_DEPTH) return -ENOSPC;
+  spin_lock_irqsave(&feed_lock, flags);
+  if (feed_count + len / sizeof(codes) > FEED_DEPTH) {
+    spin_unlock_irqrestore(&feed_lock, flags);
+    return -ENOSPC;
+  }
+  spin_unlock_irqrestore(&feed_lock, flags);
+  while (done < len) { /* only this (single) feeder adds: the room checked above stays */
+    if (copy_from_user(codes, buf + done, sizeof(codes))) return done ? (ssize_t)done : -EFAULT;
+    spin_lock_irqsave(&feed_lock, flags);
+    memcpy(feed_fifo[(feed_head + feed_count) % FEED_DEPTH], codes, sizeof(codes));
+    ++feed_count;
+    ++fed_conversions;
+    spin_unlock_irqrestore(&feed_lock, flags);
+    done += sizeof(codes);
+  }
+  return (ssize_t)len;
+}
+
+static const struct file_operations feed_fops = {
+    .owner = THIS_MODULE,
+    .open = feed_open_fn,
+    .release = feed_release_fn,
+    .write = feed_write_fn,
+    .llseek = noop_llseek,
+};
+
+static struct miscdevice feed_misc = {
+    .minor = MISC_DYNAMIC_MINOR,
+    .name = "magvec_adc_feed",
+    .fops = &feed_fops,
+    .mode = 0600,
+};
 
 static int vspi_transfer_one(struct spi_controller* ctlr, struct spi_device* spi,
                              struct spi_transfer* xfer) {
@@ -184,6 +302,8 @@ static int __init vspi_init(void) {
     ret = -ENODEV;
     goto err_ctlr;
   }
+  ret = misc_register(&feed_misc);
+  if (ret) goto err_ctlr;
   pr_info("magvec_vspi: ADS131M04 model on spi0.0, loopback on spi0.1 (crc_error_every=%u)\n",
           crc_error_every);
   return 0;
@@ -195,6 +315,7 @@ err_pdev:
 }
 
 static void __exit vspi_exit(void) {
+  misc_deregister(&feed_misc);
   spi_unregister_device(vspi_loop);
   spi_unregister_device(vspi_dev);
   spi_unregister_controller(vspi_ctlr);

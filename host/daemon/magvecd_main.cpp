@@ -24,7 +24,6 @@
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <cerrno>
-#include <chrono>
 #include <csignal>
 #include <cstring>
 #include <deque>
@@ -96,9 +95,7 @@ void install_signal_handlers() {
 }
 
 std::uint64_t mono_us() {
-  return static_cast<std::uint64_t>(std::chrono::duration_cast<std::chrono::microseconds>(
-                                        std::chrono::steady_clock::now().time_since_epoch())
-                                        .count());
+  return drivers::monotonic_us();
 }
 
 // Real-time hints: lock memory and run SCHED_FIFO when permitted; warnings otherwise.
@@ -330,7 +327,12 @@ class RealDevices final : public Devices {
       for (const hal::AttitudeSample& a : pending_)
         h.on_attitude(a);
       pending_.clear();
-      if (st != hal::Status::kTimeout && st != hal::Status::kNoData) h.on_read_error(st);
+      if (st != hal::Status::kTimeout && st != hal::Status::kNoData) {
+        h.on_read_error(st);
+        // A failing device answers at once: wait out the period (serving LCM) rather than spin.
+        if (wait) wait(max_wait_us);
+        return true;
+      }
     }
     if (wait) wait(0);
     return true;
@@ -408,8 +410,8 @@ class Daemon final : public EventHandler {
         opt_.config_path.empty() ? default_config_text() : read_config_text(opt_.config_path);
     Config c =
         parse_config(text, opt_.config_path.empty() ? "<embedded default>" : opt_.config_path);
-    // Command-line overrides are applied to the text too, so the logged session configuration
-    // is exactly what the pipeline ran with.
+    // The logged session configuration is the file's text. The command-line overrides (state
+    // directory, LCM URL) do not reach the pipeline, so a replay of the log is unaffected by them.
     config_text_ = text;
     if (!opt_.state_dir.empty()) c.daemon.state_dir = opt_.state_dir;
     if (!opt_.lcm_url.empty()) c.lcm.url = opt_.lcm_url;
@@ -476,10 +478,20 @@ class Daemon final : public EventHandler {
     ep_.apply(m);
     last_t_us_ = s.t_us;
     ++mag_events_;
+    error_streak_start_us_ = 0;
   }
   void on_read_error(hal::Status s) override {
     if (ep_.pipeline() != nullptr) ep_.pipeline()->on_read_error();
     if (++read_errors_ <= 5) spdlog::warn("magnetometer read error: {}", hal::to_string(s));
+    // A device that only fails (unplugged, powered off) is not healed by pinging the watchdog:
+    // exit with the device code so that systemd restarts the service and the journal says why.
+    const std::uint64_t now = mono_us();
+    if (error_streak_start_us_ == 0) error_streak_start_us_ = now;
+    if (now - error_streak_start_us_ > kMaxErrorStreakUs)
+      throw Fatal(kExitDevice, "magnetometer: only read errors for " +
+                                   std::to_string(kMaxErrorStreakUs / 1'000'000) +
+                                   " s (last: " + hal::to_string(s) + ", " +
+                                   std::to_string(read_errors_) + " errors in all)");
   }
 
  private:
@@ -754,6 +766,8 @@ class Daemon final : public EventHandler {
   std::uint64_t last_t_us_{0};
   std::uint64_t mag_events_{0};
   std::uint64_t read_errors_{0};
+  std::uint64_t error_streak_start_us_{0};  // first error since the last good sample (0: none)
+  static constexpr std::uint64_t kMaxErrorStreakUs = 10'000'000;
   std::uint64_t publish_errors_{0};
   std::uint64_t start_us_{0};
   std::string last_state_;

@@ -75,9 +75,9 @@ static atomic_t feed_open = ATOMIC_INIT(0);
 #define FEED_DEPTH 256
 static bool feed_active;
 static s32 feed_fifo[FEED_DEPTH][4];
-static unsigned int feed_head;  /* oldest */
+static unsigned int feed_head; /* oldest */
 static unsigned int feed_count;
-static s32 feed_last[4];        /* the last conversion served */
+static s32 feed_last[4]; /* the last conversion served */
 
 static u16 crc16_ccitt(const u8* p, size_t n) {
   u16 crc = 0xFFFF;

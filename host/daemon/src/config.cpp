@@ -1,6 +1,8 @@
 // magvecd TOML configuration; see config.hpp.
 #include "magvec/host/daemon/config.hpp"
 
+#include "magvec/host/daemon/default_config_text.hpp"
+
 #include <toml++/toml.h>
 #include <cmath>
 #include <fstream>
@@ -234,78 +236,7 @@ std::string read_config_text(const std::string& path) {
 }
 
 const std::string& default_config_text() {
-  // Kept in step with host/daemon/magvecd.toml (the annotated version); a test parses both.
-  static const std::string kText = R"(# magvecd embedded default configuration
-[daemon]
-state_dir = "/var/lib/magvecd"
-log_level = "info"
-realtime = true
-rt_priority = 20
-health_period_s = 1.0
-status_period_s = 1.0
-
-[lcm]
-url = "udpm://239.255.76.67:7667?ttl=0"
-
-[lcm.channels]
-raw_mag = "MAGVEC_RAW_MAG"
-attitude = "MAGVEC_ATTITUDE"
-pipeline = "MAGVEC_PIPELINE"
-output = "MAGVEC_OUTPUT"
-cal_state = "MAGVEC_CAL_STATE"
-health = "MAGVEC_HEALTH"
-command = "MAGVEC_CMD"
-reply = "MAGVEC_CMD_REPLY"
-
-[devices.magnetometer]
-link = "spi"
-rate_hz = 100.0
-spi_device = "/dev/spidev0.0"
-spi_speed_hz = 4000000
-drdy_chip = "/dev/gpiochip0"
-drdy_line = 0
-serial_device = "/dev/ttyUSB0"
-serial_baud = 115200
-serial_reconnect_ms = 1000
-serial_latency_us = 0
-nT_per_volt = [100000.0, 100000.0, 100000.0]
-channel_of_axis = [0, 1, 2]
-gain_code = [0, 0, 0, 0]
-stuck_count = 64
-
-[devices.ins]
-can_interface = "can0"
-rate_hz = 100.0
-latency_comp_us = 500
-require_attitude_valid = true
-
-[devices.ins.can_ids]
-status_01 = 0x100
-status_03 = 0x102
-ekf_info = 0x130
-ekf_quat = 0x131
-ekf_euler = 0x132
-ekf_orientation_acc = 0x133
-
-[calibration]
-mode = "li"
-start_on_boot = true
-auto_accept = true
-noise_nT = 0.3
-attitude_noise_deg = 0.015
-validation_samples = 200
-validation_max_rms_factor = 3.0
-validation_min_rms_nT = 1.0
-validate_against_active = true
-ekf_align = true
-li_min_samples = 300
-reference_field_nT = nan
-
-[sim]
-scenario = "li2023"
-seed = 1
-samples_per_attitude = 10
-)";
+  static const std::string kText = kDefaultConfigToml;
   return kText;
 }
 

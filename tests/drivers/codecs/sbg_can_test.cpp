@@ -172,6 +172,15 @@ TEST(SbgCan, CorruptTruncatedAndOutOfOrderFrames) {
   EXPECT_EQ(dec.feed(encode_ekf_quat({1, 0, 0, 0})), FeedResult::kMissingTime);
 }
 
+// The four frames of INS epoch i (10 ms apart): status, time, accuracy, quaternion.
+void put_epoch(hal::CanFrame* out, std::size_t i, double yaw_rad) {
+  out[0] = encode_status_03(0x34, 0);
+  out[1] = encode_ekf_info(static_cast<std::uint32_t>(10000 * i));
+  out[2] = encode_orientation_acc(1e-3, 1e-3, 3e-3);
+  out[3] = encode_ekf_quat(
+      sbg_quat_from_r_bn(core::r_bn_from_ypr(core::YawPitchRoll<double>{yaw_rad, 0.1, 0.2})));
+}
+
 class FakeCan final : public hal::CanBus {
  public:
   hal::Status receive(hal::CanFrame& out, std::uint32_t) noexcept override {
@@ -186,13 +195,8 @@ class FakeCan final : public hal::CanBus {
 
 TEST(SbgCan, AttitudeSourceOverCanBusWithoutAllocations) {
   FakeCan bus;
-  for (std::size_t i = 0; i < 100; ++i) {
-    bus.frames[4 * i] = encode_status_03(0x34, 0);
-    bus.frames[4 * i + 1] = encode_ekf_info(static_cast<std::uint32_t>(10000 * i));
-    bus.frames[4 * i + 2] = encode_orientation_acc(1e-3, 1e-3, 3e-3);
-    bus.frames[4 * i + 3] = encode_ekf_quat(sbg_quat_from_r_bn(
-        core::r_bn_from_ypr(core::YawPitchRoll<double>{0.01 * static_cast<double>(i), 0.1, 0.2})));
-  }
+  for (std::size_t i = 0; i < 100; ++i)
+    put_epoch(&bus.frames[4 * i], i, 0.01 * static_cast<double>(i));
   CanAttitudeSource src(bus);
   hal::AttitudeSample s;
   magvec::test::AllocationScope scope;
@@ -224,13 +228,8 @@ class TricklingCan final : public hal::CanBus {
 
 TEST(SbgCan, AttitudeSourceWaitsForTheRestOfAnEpoch) {
   TricklingCan bus;
-  for (std::size_t i = 0; i < 2; ++i) {
-    bus.frames[4 * i] = encode_status_03(0x34, 0);
-    bus.frames[4 * i + 1] = encode_ekf_info(static_cast<std::uint32_t>(10000 * i));
-    bus.frames[4 * i + 2] = encode_orientation_acc(1e-3, 1e-3, 3e-3);
-    bus.frames[4 * i + 3] = encode_ekf_quat(
-        sbg_quat_from_r_bn(core::r_bn_from_ypr(core::YawPitchRoll<double>{0.1, 0.1, 0.2})));
-  }
+  for (std::size_t i = 0; i < 2; ++i)
+    put_epoch(&bus.frames[4 * i], i, 0.1);
   bus.count = 8;
   CanAttitudeSource src(bus);
   hal::AttitudeSample s;

@@ -86,6 +86,23 @@ std::string to_json_text(const CalibrationFile& cal) {
                  {"inclination_deg", cal.sine->inclination_rad / kRad}};
   }
   if (cal.h_n_nT) j["h_n_nT"] = to_array(*cal.h_n_nT);
+  j["time_offset_s"] = cal.time_offset_s;
+  if (cal.time_offset_sigma_s) j["time_offset_sigma_s"] = *cal.time_offset_sigma_s;
+  {
+    json noise = json::object();
+    const NoiseFigures& nf = cal.noise;
+    if (std::isfinite(nf.mag_nT)) {
+      noise["mag_nT"] = nf.mag_nT;
+      noise["mag_source"] = nf.mag_estimated ? "estimated" : "given";
+      if (std::isfinite(nf.mag_sigma_nT)) noise["mag_sigma_nT"] = nf.mag_sigma_nT;
+    }
+    if (std::isfinite(nf.ins_deg)) {
+      noise["ins_deg"] = nf.ins_deg;
+      noise["ins_source"] = nf.ins_estimated ? "estimated" : "given";
+      if (std::isfinite(nf.ins_sigma_deg)) noise["ins_sigma_deg"] = nf.ins_sigma_deg;
+    }
+    j["noise"] = noise;
+  }
   json sigma = json::object();
   for (const auto& [name, values] : cal.sigma)
     sigma[name] = values;
@@ -146,6 +163,25 @@ CalibrationFile from_json_text(const std::string& text, const std::string& sourc
   if (j.contains("h_n_nT")) {
     const std::vector<double> h = numbers(j["h_n_nT"], 3, source, "h_n_nT");
     cal.h_n_nT = core::Vec3<double>(h[0], h[1], h[2]);
+  }
+  if (j.contains("time_offset_s")) {
+    cal.time_offset_s = number(j["time_offset_s"], source, "time_offset_s");
+    if (!std::isfinite(cal.time_offset_s) || std::abs(cal.time_offset_s) > 10.0)
+      fail(source, "field 'time_offset_s' must be finite and within +-10 s");
+  }
+  if (j.contains("time_offset_sigma_s"))
+    cal.time_offset_sigma_s = number(j["time_offset_sigma_s"], source, "time_offset_sigma_s");
+  if (j.contains("noise")) {
+    const json& nj = j["noise"];
+    if (!nj.is_object()) fail(source, "field 'noise' must be an object");
+    if (nj.contains("mag_nT")) cal.noise.mag_nT = number(nj["mag_nT"], source, "noise.mag_nT");
+    if (nj.contains("mag_sigma_nT"))
+      cal.noise.mag_sigma_nT = number(nj["mag_sigma_nT"], source, "noise.mag_sigma_nT");
+    if (nj.contains("ins_deg")) cal.noise.ins_deg = number(nj["ins_deg"], source, "noise.ins_deg");
+    if (nj.contains("ins_sigma_deg"))
+      cal.noise.ins_sigma_deg = number(nj["ins_sigma_deg"], source, "noise.ins_sigma_deg");
+    cal.noise.mag_estimated = nj.contains("mag_source") && nj["mag_source"] == "estimated";
+    cal.noise.ins_estimated = nj.contains("ins_source") && nj["ins_source"] == "estimated";
   }
   if (j.contains("sine")) {
     const json& s = j["sine"];

@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <map>
 #include <optional>
 #include <stdexcept>
@@ -48,8 +49,26 @@ struct Provenance {
   std::string created_utc;
 };
 
+// Noise figures a calibration used: estimated from the data's residuals, or given by the user.
+// NaN where not applicable (no attitude: no INS figure).
+struct NoiseFigures {
+  double mag_nT = std::numeric_limits<double>::quiet_NaN();        // per axis, 1-sigma
+  double mag_sigma_nT = std::numeric_limits<double>::quiet_NaN();  // 1-sigma of that estimate
+  bool mag_estimated = false;  // false: the given value (--noise-nT) was used
+  double ins_deg = std::numeric_limits<double>::quiet_NaN();  // per INS angle, 1-sigma
+  double ins_sigma_deg = std::numeric_limits<double>::quiet_NaN();
+  bool ins_estimated = false;
+};
+
 struct CalibrationFile {
   core::SensorModel<double> model;
+  // Magnetometer time stamp minus the INS time of the attitude it belongs to [s]: positive when
+  // the magnetometer lags the INS. A magnetometer sample stamped t pairs with the attitude at
+  // t - time_offset_s (apply, run, replay and magvecd do so).
+  double time_offset_s{0};
+  // 1-sigma of time_offset_s when it was estimated; absent when it was fixed or not observable.
+  std::optional<double> time_offset_sigma_s;
+  NoiseFigures noise;
   std::optional<core::Vec3<double>> h_n_nT;
   std::optional<SineResult> sine;
   // 1-sigma of the paper-form parameters, by name (e.g. "ks", "O_deg", "Kof_nT", "Rm_deg").

@@ -349,16 +349,22 @@ hal::Status Hmr2300BinaryDecoder::push(std::uint8_t byte, std::uint64_t t_us,
   }
   if (byte != kTerminator || pos < kHistory - 1) return hal::Status::kNoData;
   const std::uint64_t prev_end = pos - kRecordBytes;
-  if (any_emitted_ && prev_end <= last_emitted_end_) {
-    // The older candidate overlaps what was already delivered; only the newer can be new.
-    if (prev_end == last_emitted_end_ && plausible(pos)) {
-      locked_ = true;
-      expected_end_ = pos + kRecordBytes;
-      make_sample(pos, t_us, out);
-      return hal::Status::kOk;
-    }
-    return hal::Status::kNoData;
+  // A candidate record [end - 6, end] is new only if it starts after the last delivered byte: a
+  // candidate sharing even one byte with a delivered record would repeat data as a false sample.
+  const auto fresh = [this](std::uint64_t end) {
+    return !any_emitted_ || end - (kRecordBytes - 1) > last_emitted_end_;
+  };
+  if (!fresh(pos)) return hal::Status::kNoData;
+  if (any_emitted_ && prev_end == last_emitted_end_) {
+    // The older candidate is the last delivered record itself: the newer one continues it.
+    if (!plausible(pos)) return hal::Status::kNoData;
+    locked_ = true;
+    expected_end_ = pos + kRecordBytes;
+    make_sample(pos, t_us, out);
+    return hal::Status::kOk;
   }
+  // Otherwise both candidates must be new (a partial overlap is no evidence of framing).
+  if (!fresh(prev_end)) return hal::Status::kNoData;
   if (!plausible(prev_end) || !plausible(pos)) return hal::Status::kNoData;
   locked_ = true;
   expected_end_ = pos + kRecordBytes;

@@ -206,6 +206,30 @@ TEST(Hmr2300, ResynchronisesAfterRandomGarbage) {
   EXPECT_GT(d.counters().garbage_bytes, garbage / 2);
 }
 
+// Regression: after losing lock, a terminator whose older candidate record overlaps the last
+// delivered record by a few bytes (here 4) re-delivered those bytes as a false sample.
+TEST(Hmr2300, NoFalseSampleFromBytesOfADeliveredRecord) {
+  const std::vector<std::uint8_t> stream = {
+      0x00, 0x01, 0x00, 0x02, 0x00, 0x03, 0x0D,  // record (1, 2, 3), positions 0..6
+      0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x0D,  // record (0, 0, 0), 7..13: lock
+      // Position 20 should hold the next terminator: lock is lost there. The 0Dh at 16 ends the
+      // bytes 10..16 = 00 00 | 00 0D | 00 00 | 0D, which overlap the delivered record at 10..13.
+      0x00, 0x00, 0x0D, 0x00, 0x04, 0x00, 0x05, 0x00, 0x06, 0x0D,  // 14..23: 0Dh 7 bytes later
+      0x00, 0x07, 0x00, 0x08, 0x00, 0x09, 0x0D,                    // (7, 8, 9), 24..30
+  };
+  Hmr2300BinaryDecoder d;
+  std::vector<std::array<std::int32_t, 3>> got;
+  d.feed(stream, 0, [&](const hal::MagnetometerSample& s) { got.push_back(s.raw); });
+  // Before the fix, (0, 13, 0) from bytes 10..16 came out third. The record (4, 5, 6) at 17..23
+  // is framed by the one after it (both candidates new) and delivered with it, one record late.
+  const std::vector<std::array<std::int32_t, 3>> want = {
+      {1, 2, 3}, {0, 0, 0}, {4, 5, 6}, {7, 8, 9}};
+  EXPECT_EQ(got, want);
+  EXPECT_EQ(d.counters().samples, 4u);
+  EXPECT_EQ(d.counters().malformed, 1u);  // the lock loss at position 20
+  EXPECT_TRUE(d.locked());
+}
+
 class FakeSerial final : public hal::SerialPort, public hal::Clock {
  public:
   hal::Status read(std::span<std::uint8_t> buf, std::size_t& n, std::uint32_t) noexcept override {

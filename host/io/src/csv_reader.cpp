@@ -105,6 +105,8 @@ CsvReader::~CsvReader() = default;
 bool CsvReader::read_line() {
   while (std::getline(in_, line_)) {
     ++line_no_;
+    // A UTF-8 byte-order mark (spreadsheet exports) is not part of the first column's name.
+    if (line_no_ == 1 && line_.starts_with("\xEF\xBB\xBF")) line_.erase(0, 3);
     const std::string_view t = trim(line_);
     if (t.empty() || t.front() == '#') {
       if (names_.empty() && !t.empty()) {
@@ -280,7 +282,11 @@ double CsvReader::number_at(std::size_t index, double scale) const {
   }
   if (!std::isfinite(v))
     fail(index, "non-finite number '" + std::string(s) + "' (only nan is allowed)");
-  return v * scale;
+  // Checked after the unit scaling: 1e306 uT or 1e307 rad are finite as read but not in nT / deg.
+  const double scaled = v * scale;
+  if (!std::isfinite(scaled))
+    fail(index, "number out of range after unit conversion '" + std::string(s) + "'");
+  return scaled;
 }
 
 double CsvReader::number(const Column& c) const {
@@ -335,9 +341,11 @@ bool CsvReader::next(CsvRecord* out) {
           break;
         case AttitudeColumns::kQuaternion: {
           const core::Quat<double> q(a[0], a[1], a[2], a[3]);
-          if (std::abs(q.norm() - 1.0) > 1e-3) {
+          const double norm = q.norm();
+          if (!(std::abs(norm - 1.0) <= 1e-3)) {  // also an overflowing norm (components ~1e200)
             fail(col_att_[0].index,
-                 "quaternion is not unit (norm " + format_double(q.norm()) + ")");
+                 "quaternion is not unit (norm " +
+                     (std::isfinite(norm) ? format_double(norm) : std::string("overflows")) + ")");
           }
           r.r_bn = core::r_bn_from_quat(q);
           break;

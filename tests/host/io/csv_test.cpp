@@ -266,6 +266,65 @@ TEST_F(Csv, NonUnitQuaternionIsAnError) {
   EXPECT_NE(msg.find("quaternion is not unit"), std::string::npos) << msg;
 }
 
+// Regression: a huge component overflowed the norm to inf and the error message's formatter threw
+// std::domain_error (no file, line or column).
+TEST_F(Csv, OverflowingQuaternionIsACsvError) {
+  std::uint64_t line = 0;
+  std::string column;
+  const std::string msg =
+      error_of("t_s,hx_nT,hy_nT,hz_nT,qw,qx,qy,qz\n0,1,2,3,1e200,0,0,0\n", &line, &column);
+  EXPECT_EQ(line, 2U);
+  EXPECT_EQ(column, "'qw' (field 5)");
+  EXPECT_NE(msg.find("quaternion is not unit (norm overflows)"), std::string::npos) << msg;
+}
+
+// Regression: the finiteness check ran before the unit scaling, so 1e306 uT became inf nT and
+// 1e307 rad an infinite angle (a NaN attitude).
+TEST_F(Csv, ValuesThatOverflowInTheirInterfaceUnitAreRejected) {
+  struct Case {
+    const char* text;
+    const char* column;
+  };
+  for (const Case& c : {
+           Case{"t_s,hx_uT,hy_uT,hz_uT\n0,1e306,2,3\n", "'hx_uT' (field 2)"},
+           Case{"t_s,hx_nT,hy_nT,hz_nT,F_uT\n0,1,2,3,-1e306\n", "'F_uT' (field 5)"},
+           Case{"t_s,hx_nT,hy_nT,hz_nT,alpha_rad,beta_rad,gamma_rad\n0,1,2,3,1e307,0,0\n",
+                "'alpha_rad' (field 5)"},
+           Case{"t_s,hx_nT,hy_nT,hz_nT,theta_rad\n0,1,2,3,-1e307\n", "'theta_rad' (field 5)"},
+       }) {
+    SCOPED_TRACE(c.text);
+    std::uint64_t line = 0;
+    std::string column;
+    const std::string msg = error_of(c.text, &line, &column);
+    EXPECT_EQ(line, 2U);
+    EXPECT_EQ(column, c.column);
+    EXPECT_NE(msg.find("out of range after unit conversion"), std::string::npos) << msg;
+  }
+  // The largest values that still fit are read (and scaled) exactly as before.
+  const std::string p = write("big.csv", "t_s,hx_uT,hy_uT,hz_uT\n0,1e305,-1e305,0.5\n");
+  CsvReader r(p);
+  CsvRecord rec;
+  ASSERT_TRUE(r.next(&rec));
+  EXPECT_EQ(rec.m_nT, Vec3<double>(1e305 * 1000.0, -1e305 * 1000.0, 500.0));
+}
+
+TEST_F(Csv, Utf8ByteOrderMarkBeforeTheHeaderIsSkipped) {
+  const std::string p = write("bom.csv", "\xEF\xBB\xBFt_s,hx_nT,hy_nT,hz_nT\n0.5,1,2,3\n");
+  CsvReader r(p);
+  ASSERT_EQ(r.columns().size(), 4U);
+  EXPECT_EQ(r.columns()[0], "t_s");
+  CsvRecord rec;
+  ASSERT_TRUE(r.next(&rec));
+  EXPECT_EQ(rec.t_s, 0.5);
+  EXPECT_EQ(rec.m_nT, Vec3<double>(1, 2, 3));
+  // Also before a leading comment line; a BOM anywhere else is ordinary (bad) text.
+  EXPECT_EQ(error_of("\xEF\xBB\xBF# made by a spreadsheet\nt_s,hx_nT,hy_nT,hz_nT\n0,1,2,3\n"), "");
+  EXPECT_NE(error_of("t_s,hx_nT,hy_nT,hz_nT\n\xEF\xBB\xBF"
+                     "0,1,2,3\n")
+                .find("malformed number"),
+            std::string::npos);
+}
+
 TEST_F(Csv, MissingFileIsAnError) {
   try {
     CsvReader r((dir_ / "does_not_exist.csv").string());

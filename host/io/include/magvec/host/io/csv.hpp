@@ -21,7 +21,8 @@
 // - Numbers: anything std::from_chars accepts, an optional leading '+', and nan (any case, optional
 //   sign). inf and empty fields are malformed. `nan` in any of hx/hy/hz marks a dropout (m
 //   all-NaN); nan in F, theta or any attitude column means "not available" for that row; t_s must
-//   be finite.
+//   be finite. A value that is no longer finite once scaled to nT / deg (1e306 uT) is an error.
+// - A UTF-8 byte-order mark at the start of the file is skipped.
 // - Every row must have exactly as many fields as the header.
 // - Errors throw CsvError naming file, line and column.
 // Memory: one line at a time; after the first rows, next() does not allocate.

@@ -57,6 +57,87 @@ double number(const json& j, const std::string& source, const std::string& name)
   return j.get<double>();
 }
 
+// Optional members: absent gives the default, present must have the right type. Every access is
+// checked first, so no nlohmann type_error/out_of_range escapes without the file and field named.
+const json* member(const json& obj, const char* key) {
+  const auto it = obj.find(key);
+  return it == obj.end() ? nullptr : &*it;
+}
+
+const json* object_member(const json& obj, const char* key, const std::string& source,
+                          const std::string& name) {
+  const json* v = member(obj, key);
+  if (v != nullptr && !v->is_object()) fail(source, "field '" + name + "' must be an object");
+  return v;
+}
+
+double number_or(const json& obj, const char* key, double fallback, const std::string& source,
+                 const std::string& name) {
+  const json* v = member(obj, key);
+  return v == nullptr ? fallback : number(*v, source, name);
+}
+
+double non_negative(const json& j, const std::string& source, const std::string& name) {
+  const double v = number(j, source, name);
+  if (v < 0) fail(source, "field '" + name + "' must not be negative");
+  return v;
+}
+
+std::string text_or(const json& obj, const char* key, const std::string& source,
+                    const std::string& name, std::string fallback = {}) {
+  const json* v = member(obj, key);
+  if (v == nullptr) return fallback;
+  if (!v->is_string()) fail(source, "field '" + name + "' must be a string");
+  return v->get<std::string>();
+}
+
+// A count: a non-negative integer that fits 64 bits. An integral float (1000.0) is accepted; a
+// float cast to an unsigned type out of its range would be undefined behaviour, so it is checked.
+std::uint64_t count_or_zero(const json& obj, const char* key, const std::string& source,
+                            const std::string& name) {
+  const json* v = member(obj, key);
+  if (v == nullptr) return 0;
+  if (v->is_number_unsigned()) return v->get<std::uint64_t>();
+  if (v->is_number_integer() && v->get<std::int64_t>() == 0) return 0;  // "-0"
+  if (v->is_number_float()) {
+    const double d = v->get<double>();
+    constexpr double kTwoTo64 = 18446744073709551616.0;
+    if (d >= 0 && d < kTwoTo64 && d == std::floor(d)) return static_cast<std::uint64_t>(d);
+  }
+  fail(source, "field '" + name + "' must be a non-negative integer below 2^64");
+}
+
+// Parses, naming the innermost key when the parser itself throws (a number overflowing a double,
+// 1e474, is an out_of_range error, not a parse_error).
+json parse_json(const std::string& text, const std::string& source) {
+  std::vector<std::string> keys;  // key of each enclosing object, innermost last
+  const json::parser_callback_t track = [&keys](int, json::parse_event_t event, json& parsed) {
+    switch (event) {
+      case json::parse_event_t::object_start:
+        keys.emplace_back();
+        break;
+      case json::parse_event_t::key:
+        if (!keys.empty() && parsed.is_string()) keys.back() = parsed.get<std::string>();
+        break;
+      case json::parse_event_t::object_end:
+        if (!keys.empty()) keys.pop_back();
+        break;
+      default:
+        break;
+    }
+    return true;
+  };
+  try {
+    return json::parse(text, track);
+  } catch (const json::exception& e) {
+    std::string path;
+    for (const std::string& k : keys)
+      path += (path.empty() ? "" : ".") + k;
+    fail(source, std::string("not valid JSON") + (path.empty() ? "" : " in field '" + path + "'") +
+                     ": " + e.what());
+  }
+}
+
 }  // namespace
 
 std::string to_json_text(const CalibrationFile& cal) {
@@ -133,13 +214,9 @@ std::string to_json_text(const CalibrationFile& cal) {
   return j.dump(2) + "\n";
 }
 
-CalibrationFile from_json_text(const std::string& text, const std::string& source) {
-  json j;
-  try {
-    j = json::parse(text);
-  } catch (const json::parse_error& e) {
-    fail(source, std::string("not valid JSON: ") + e.what());
-  }
+namespace {
+
+CalibrationFile from_json_checked(const json& j, const std::string& source) {
   if (!j.is_object()) fail(source, "top level must be a JSON object");
   const json& schema = field(j, "schema", source, "");
   if (!schema.is_string() || schema.get<std::string>() != kSchema) {
@@ -155,36 +232,43 @@ CalibrationFile from_json_text(const std::string& text, const std::string& sourc
   }
   cal.model.o = core::Vec3<double>(o[0], o[1], o[2]);
   const double qn = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
-  if (std::abs(qn - 1.0) > 1e-6) fail(source, "field 'Rm_quat' is not a unit quaternion");
+  if (!(std::abs(qn - 1.0) <= 1e-6)) fail(source, "field 'Rm_quat' is not a unit quaternion");
   cal.model.rm = core::Quat<double>(q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn);
   const double det = cal.model.w.determinant();
   if (!(std::abs(det) > 1e-12)) fail(source, "field 'W' is singular");
+  if (!std::isfinite(det)) fail(source, "field 'W' is out of range (determinant overflows)");
 
-  if (j.contains("h_n_nT")) {
-    const std::vector<double> h = numbers(j["h_n_nT"], 3, source, "h_n_nT");
-    cal.h_n_nT = core::Vec3<double>(h[0], h[1], h[2]);
+  if (const json* h = member(j, "h_n_nT")) {
+    const std::vector<double> v = numbers(*h, 3, source, "h_n_nT");
+    cal.h_n_nT = core::Vec3<double>(v[0], v[1], v[2]);
   }
-  if (j.contains("time_offset_s")) {
-    cal.time_offset_s = number(j["time_offset_s"], source, "time_offset_s");
-    if (!std::isfinite(cal.time_offset_s) || std::abs(cal.time_offset_s) > 10.0)
+  if (const json* t = member(j, "time_offset_s")) {
+    cal.time_offset_s = number(*t, source, "time_offset_s");
+    if (std::abs(cal.time_offset_s) > 10.0)
       fail(source, "field 'time_offset_s' must be finite and within +-10 s");
   }
-  if (j.contains("time_offset_sigma_s"))
-    cal.time_offset_sigma_s = number(j["time_offset_sigma_s"], source, "time_offset_sigma_s");
-  if (j.contains("noise")) {
-    const json& nj = j["noise"];
-    if (!nj.is_object()) fail(source, "field 'noise' must be an object");
-    if (nj.contains("mag_nT")) cal.noise.mag_nT = number(nj["mag_nT"], source, "noise.mag_nT");
-    if (nj.contains("mag_sigma_nT"))
-      cal.noise.mag_sigma_nT = number(nj["mag_sigma_nT"], source, "noise.mag_sigma_nT");
-    if (nj.contains("ins_deg")) cal.noise.ins_deg = number(nj["ins_deg"], source, "noise.ins_deg");
-    if (nj.contains("ins_sigma_deg"))
-      cal.noise.ins_sigma_deg = number(nj["ins_sigma_deg"], source, "noise.ins_sigma_deg");
-    cal.noise.mag_estimated = nj.contains("mag_source") && nj["mag_source"] == "estimated";
-    cal.noise.ins_estimated = nj.contains("ins_source") && nj["ins_source"] == "estimated";
+  if (const json* t = member(j, "time_offset_sigma_s"))
+    cal.time_offset_sigma_s = non_negative(*t, source, "time_offset_sigma_s");
+  if (const json* nj = object_member(j, "noise", source, "noise")) {
+    if (const json* v = member(*nj, "mag_nT"))
+      cal.noise.mag_nT = non_negative(*v, source, "noise.mag_nT");
+    if (const json* v = member(*nj, "mag_sigma_nT"))
+      cal.noise.mag_sigma_nT = non_negative(*v, source, "noise.mag_sigma_nT");
+    if (const json* v = member(*nj, "ins_deg"))
+      cal.noise.ins_deg = non_negative(*v, source, "noise.ins_deg");
+    if (const json* v = member(*nj, "ins_sigma_deg"))
+      cal.noise.ins_sigma_deg = non_negative(*v, source, "noise.ins_sigma_deg");
+    auto estimated = [&](const char* key, const std::string& name) {
+      const std::string v = text_or(*nj, key, source, name, "given");
+      if (v != "estimated" && v != "given")
+        fail(source, "field '" + name + "' must be \"estimated\" or \"given\"");
+      return v == "estimated";
+    };
+    cal.noise.mag_estimated = estimated("mag_source", "noise.mag_source");
+    cal.noise.ins_estimated = estimated("ins_source", "noise.ins_source");
   }
-  if (j.contains("sine")) {
-    const json& s = j["sine"];
+  if (const json* sp = object_member(j, "sine", source, "sine")) {
+    const json& s = *sp;
     SineResult r;
     const std::vector<double> k = numbers(field(s, "k", source, "sine."), 3, source, "sine.k");
     const std::vector<double> b0 =
@@ -201,57 +285,70 @@ CalibrationFile from_json_text(const std::string& text, const std::string& sourc
         number(field(s, "inclination_deg", source, "sine."), source, "sine.inclination_deg") * kRad;
     cal.sine = r;
   }
-  if (j.contains("sigma")) {
-    const json& s = j["sigma"];
-    if (!s.is_object()) fail(source, "field 'sigma' must be an object");
-    for (const auto& [name, values] : s.items()) {
+  if (const json* s = object_member(j, "sigma", source, "sigma")) {
+    for (const auto& [name, values] : s->items()) {
       if (!values.is_array()) fail(source, "field 'sigma." + name + "' must be an array");
       cal.sigma[name] = numbers(values, values.size(), source, "sigma." + name);
     }
   }
-  if (j.contains("quality")) {
-    const json& qj = j["quality"];
-    cal.quality.verdict = qj.value("verdict", std::string("ok"));
-    cal.quality.reason = qj.value("reason", std::string());
-    cal.quality.coverage = qj.value("coverage", 0.0);
-    cal.quality.condition = qj.value("condition", 0.0);
-    if (qj.contains("residual_rms_nT")) {
-      cal.quality.residual_rms_before_nT = qj["residual_rms_nT"].value("before", 0.0);
-      cal.quality.residual_rms_after_nT = qj["residual_rms_nT"].value("after", 0.0);
+  if (const json* qp = object_member(j, "quality", source, "quality")) {
+    const json& qj = *qp;
+    cal.quality.verdict = text_or(qj, "verdict", source, "quality.verdict", "ok");
+    cal.quality.reason = text_or(qj, "reason", source, "quality.reason");
+    cal.quality.coverage = number_or(qj, "coverage", 0.0, source, "quality.coverage");
+    cal.quality.condition = number_or(qj, "condition", 0.0, source, "quality.condition");
+    if (const json* rms = object_member(qj, "residual_rms_nT", source, "quality.residual_rms_nT")) {
+      cal.quality.residual_rms_before_nT =
+          number_or(*rms, "before", 0.0, source, "quality.residual_rms_nT.before");
+      cal.quality.residual_rms_after_nT =
+          number_or(*rms, "after", 0.0, source, "quality.residual_rms_nT.after");
     }
-    if (qj.contains("counts")) {
-      const json& c = qj["counts"];
-      cal.counts.samples = c.value("samples", std::uint64_t{0});
-      cal.counts.used = c.value("used", std::uint64_t{0});
-      cal.counts.skipped_nonfinite = c.value("skipped_nonfinite", std::uint64_t{0});
-      cal.counts.rejected_outliers = c.value("rejected_outliers", std::uint64_t{0});
+    if (const json* c = object_member(qj, "counts", source, "quality.counts")) {
+      cal.counts.samples = count_or_zero(*c, "samples", source, "quality.counts.samples");
+      cal.counts.used = count_or_zero(*c, "used", source, "quality.counts.used");
+      cal.counts.skipped_nonfinite =
+          count_or_zero(*c, "skipped_nonfinite", source, "quality.counts.skipped_nonfinite");
+      cal.counts.rejected_outliers =
+          count_or_zero(*c, "rejected_outliers", source, "quality.counts.rejected_outliers");
     }
-    if (qj.contains("extra") && qj["extra"].is_object()) {
-      for (const auto& [name, value] : qj["extra"].items()) {
+    if (const json* extra = member(qj, "extra"); extra != nullptr && extra->is_object()) {
+      for (const auto& [name, value] : extra->items()) {
         if (value.is_number()) cal.quality.extra[name] = value.get<double>();
       }
     }
   }
-  if (j.contains("provenance")) {
-    const json& p = j["provenance"];
-    cal.provenance.input = p.value("input", std::string());
-    cal.provenance.method = p.value("method", std::string());
-    cal.provenance.magvec_version = p.value("magvec_version", std::string());
-    cal.provenance.created_utc = p.value("created_utc", std::string());
+  if (const json* p = object_member(j, "provenance", source, "provenance")) {
+    cal.provenance.input = text_or(*p, "input", source, "provenance.input");
+    cal.provenance.method = text_or(*p, "method", source, "provenance.method");
+    cal.provenance.magvec_version =
+        text_or(*p, "magvec_version", source, "provenance.magvec_version");
+    cal.provenance.created_utc = text_or(*p, "created_utc", source, "provenance.created_utc");
   }
   // The paper forms are derived data: if present they must agree with the canonical model.
-  if (j.contains("ge")) {
+  if (const json* gj = object_member(j, "ge", source, "ge")) {
     const std::vector<double> cinv =
-        numbers(field(j["ge"], "Cinv", source, "ge."), 9, source, "ge.Cinv");
+        numbers(field(*gj, "Cinv", source, "ge."), 9, source, "ge.Cinv");
     const core::GeParams<double> ge = core::to_ge(cal.model);
     for (int i = 0; i < 9; ++i) {
-      if (std::abs(cinv[static_cast<std::size_t>(i)] - ge.c_inv(i / 3, i % 3)) >
-          1e-9 * (1 + ge.c_inv.norm())) {
+      if (!(std::abs(cinv[static_cast<std::size_t>(i)] - ge.c_inv(i / 3, i % 3)) <=
+            1e-9 * (1 + ge.c_inv.norm()))) {
         fail(source, "field 'ge.Cinv' disagrees with W and Rm_quat (edited by hand?)");
       }
     }
   }
   return cal;
+}
+
+}  // namespace
+
+CalibrationFile from_json_text(const std::string& text, const std::string& source) {
+  try {
+    return from_json_checked(parse_json(text, source), source);
+  } catch (const json::exception& e) {
+    // Not expected (every access above is checked); kept so that no nlohmann exception can leave
+    // this function without the file named.
+    fail(source, std::string("malformed calibration file: ") + e.what());
+  }
 }
 
 void write_calibration_file(const std::string& path, const CalibrationFile& cal) {

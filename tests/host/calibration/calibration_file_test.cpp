@@ -6,6 +6,9 @@
 
 #include <filesystem>
 #include <fstream>
+#include <string>
+#include <utility>
+#include <vector>
 
 namespace magvec::host {
 namespace {
@@ -80,6 +83,120 @@ TEST(CalibrationFile, RejectsBadFilesWithClearErrors) {
   nlohmann::json edited = nlohmann::json::parse(good);
   edited["ge"]["Cinv"][0] = 50.0;  // a hand edit of a derived block
   expect_error(edited.dump(), "disagrees");
+}
+
+// The error message of reading `text`, "" when it reads; any other exception fails the test.
+std::string read_error(const std::string& text) {
+  try {
+    (void)from_json_text(text, "dir/cal.json");
+  } catch (const CalibrationFileError& e) {
+    return e.what();
+  }
+  return "";
+}
+
+// `good` with one member replaced: path is a JSON pointer ("/quality/counts/samples"), value raw
+// JSON text spliced in where the replacement is a marker (so that 1e474 reaches the parser).
+std::string with_member(const std::string& pointer, const std::string& raw_value) {
+  nlohmann::json j = nlohmann::json::parse(to_json_text(sample_file()));
+  j[nlohmann::json::json_pointer(pointer)] = "@@VALUE@@";
+  std::string text = j.dump();
+  text.replace(text.find("\"@@VALUE@@\""), 11, raw_value);
+  return text;
+}
+
+// Regression: nlohmann's out_of_range (a number overflowing a double) escaped the reader.
+TEST(CalibrationFile, OverflowingNumbersNameFileAndField) {
+  for (const auto& [pointer, name] : std::vector<std::pair<std::string, std::string>>{
+           {"/W/4", "'W'"},
+           {"/quality/counts/samples", "'quality.counts.samples'"},
+           {"/time_offset_s", "'time_offset_s'"},
+           {"/sigma/ks/1", "'sigma.ks'"}}) {
+    for (const char* raw :
+         {"1e474", "-1e400",
+          "1"
+          "000000000000000000000000000000000000000000000000"
+          "000000000000000000000000000000000000000000000000000000000000000000000"
+          "000000000000000000000000000000000000000000000000000000000000000000000"
+          "000000000000000000000000000000000000000000000000000000000000000000000"
+          "000000000000000000000000000000000000000000000000000000000000000000000"}) {
+      SCOPED_TRACE(pointer + " = " + raw);
+      const std::string msg = read_error(with_member(pointer, raw));
+      EXPECT_NE(msg.find("dir/cal.json: "), std::string::npos) << msg;
+      EXPECT_NE(msg.find(name), std::string::npos) << msg;
+    }
+  }
+}
+
+// Regression: a wrong type escaped as nlohmann's type_error without the file or field.
+TEST(CalibrationFile, WrongTypesNameFileAndField) {
+  struct Case {
+    std::string pointer, raw, needle;
+  };
+  for (const Case& c : std::vector<Case>{
+           {"/quality", "5", "'quality' must be an object"},
+           {"/quality/verdict", "3", "'quality.verdict' must be a string"},
+           {"/quality/reason", "null", "'quality.reason' must be a string"},
+           {"/quality/coverage", "\"high\"", "'quality.coverage' must be a finite number"},
+           {"/quality/residual_rms_nT", "[1, 2]", "'quality.residual_rms_nT' must be an object"},
+           {"/quality/residual_rms_nT/before", "{}", "'quality.residual_rms_nT.before'"},
+           {"/quality/counts", "true", "'quality.counts' must be an object"},
+           {"/quality/counts/used", "\"980\"", "'quality.counts.used' must be a non-negative"},
+           {"/provenance", "\"x\"", "'provenance' must be an object"},
+           {"/provenance/input", "[]", "'provenance.input' must be a string"},
+           {"/noise", "[]", "'noise' must be an object"},
+           {"/noise/mag_nT", "\"1\"", "'noise.mag_nT' must be a finite number"},
+           {"/noise/mag_source", "1", "'noise.mag_source' must be a string"},
+           {"/noise/ins_source", "\"guessed\"", "'noise.ins_source' must be \"estimated\""},
+           {"/time_offset_sigma_s", "\"0.1\"", "'time_offset_sigma_s' must be a finite number"},
+           {"/sine", "1", "'sine' must be an object"},
+           {"/ge", "[]", "'ge' must be an object"},
+           {"/sigma", "2", "'sigma' must be an object"},
+           {"/h_n_nT", "{}", "'h_n_nT' must be an array of 3"},
+       }) {
+    SCOPED_TRACE(c.pointer + " = " + c.raw);
+    const std::string msg = read_error(with_member(c.pointer, c.raw));
+    EXPECT_NE(msg.find("dir/cal.json: "), std::string::npos) << msg;
+    EXPECT_NE(msg.find(c.needle), std::string::npos) << msg;
+  }
+}
+
+// Regression: "samples": -1.0 was a float-to-unsigned conversion out of range (undefined
+// behaviour); negative integers were accepted silently.
+TEST(CalibrationFile, CountsMustBeNonNegativeIntegersThatFit) {
+  for (const char* raw : {"-1.0", "-1", "1.5", "-0.5", "1e20", "18446744073709551616.0", "1e300"}) {
+    SCOPED_TRACE(raw);
+    const std::string msg = read_error(with_member("/quality/counts/samples", raw));
+    EXPECT_NE(msg.find("'quality.counts.samples' must be a non-negative integer"),
+              std::string::npos)
+        << msg;
+  }
+  const auto samples = [](const char* raw) {
+    return from_json_text(with_member("/quality/counts/samples", raw), "cal.json").counts.samples;
+  };
+  EXPECT_EQ(samples("1000"), 1000u);
+  EXPECT_EQ(samples("1000.0"), 1000u);
+  EXPECT_EQ(samples("0"), 0u);
+  EXPECT_EQ(samples("-0"), 0u);
+  EXPECT_EQ(samples("18446744073709551615"), 18446744073709551615u);
+  EXPECT_EQ(samples("1.8446744073709550e19"), 18446744073709549568u);  // largest double < 2^64
+}
+
+TEST(CalibrationFile, SigmasAndNoiseFiguresMustNotBeNegative) {
+  for (const char* pointer : {"/time_offset_sigma_s", "/noise/mag_nT", "/noise/mag_sigma_nT",
+                              "/noise/ins_deg", "/noise/ins_sigma_deg"}) {
+    SCOPED_TRACE(pointer);
+    EXPECT_NE(read_error(with_member(pointer, "-0.1")).find("must not be negative"),
+              std::string::npos);
+    EXPECT_EQ(read_error(with_member(pointer, "0.1")), "");
+  }
+}
+
+TEST(CalibrationFile, HugeButFiniteModelIsRejected) {
+  nlohmann::json j = nlohmann::json::parse(to_json_text(sample_file()));
+  j["W"] = {1e200, 0, 0, 0, 1e200, 0, 0, 0, 1e200};
+  j.erase("ge");
+  EXPECT_NE(read_error(j.dump()).find("'W' is out of range"), std::string::npos);
 }
 
 TEST(CalibrationFile, AtomicWriteReplacesAndLeavesNoTemporaries) {

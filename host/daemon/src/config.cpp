@@ -5,12 +5,138 @@
 
 #include <toml++/toml.h>
 #include <cmath>
+#include <cstdint>
 #include <fstream>
+#include <optional>
 #include <set>
 #include <sstream>
 
 namespace magvec::host::daemon {
 namespace {
+
+// Exact double value of an integer or floating-point node. toml++'s value<double>() is an empty
+// optional for an integer beyond 2^53 (no exact double), so that case is reported, never
+// dereferenced.
+std::optional<double> exact_double(const toml::node& n) {
+  if (const auto* f = n.as_floating_point()) return f->get();
+  if (const auto* i = n.as_integer()) {
+    constexpr std::int64_t kExact = std::int64_t{1} << 53;
+    if (i->get() > kExact || i->get() < -kExact) return std::nullopt;
+    return static_cast<double>(i->get());
+  }
+  return std::nullopt;
+}
+
+constexpr const char* kInexactInteger =
+    "integer beyond 2^53 is not exactly representable as a number; write it as a float (1e16)";
+
+// toml++ 3.3.0 (Debian 12) has undefined behaviour on some non-ASCII input: valid UTF-8 in
+// certain positions reaches TOML_UNREACHABLE in its Unicode classification (fixed upstream after
+// 3.3.0; newer releases still have open reports of the same kind). Pinning a newer copy would
+// replace the distribution package for a format whose values are all ASCII, so the text is
+// guarded instead: it must be valid UTF-8 and non-ASCII characters may appear only in comments,
+// where toml++ merely checks for control characters and surrogates (which valid UTF-8 excludes).
+// The scan tracks strings only to tell a comment's '#' from one inside a string; where it
+// disagrees with TOML on invalid documents, the result is a rejection, never unguarded text.
+void check_text(const std::string& text, const std::string& source) {
+  enum class In : std::uint8_t { kCode, kComment, kBasic, kLiteral, kMlBasic, kMlLiteral };
+  In in = In::kCode;
+  std::size_t line = 1;
+  std::size_t line_start = 0;
+  const auto at = [&text](std::size_t i) -> unsigned char {
+    return i < text.size() ? static_cast<unsigned char>(text[i]) : 0;
+  };
+  const auto starts = [&text](std::size_t i, const char* three) {
+    return text.compare(i, 3, three) == 0;
+  };
+  for (std::size_t i = 0; i < text.size();) {
+    const unsigned char c = at(i);
+    if (c >= 0x80) {
+      // One UTF-8 sequence, strictly: no overlongs, surrogates or values above U+10FFFF.
+      std::size_t n = 0;
+      std::uint32_t cp = 0;
+      if (c >= 0xC2 && c <= 0xDF) {
+        n = 2;
+        cp = c & 0x1Fu;
+      } else if (c >= 0xE0 && c <= 0xEF) {
+        n = 3;
+        cp = c & 0x0Fu;
+      } else if (c >= 0xF0 && c <= 0xF4) {
+        n = 4;
+        cp = c & 0x07u;
+      }
+      bool ok = n != 0;
+      for (std::size_t k = 1; ok && k < n; ++k) {
+        ok = (at(i + k) & 0xC0u) == 0x80u;
+        cp = (cp << 6) | (at(i + k) & 0x3Fu);
+      }
+      ok = ok && !(n == 3 && cp < 0x800) && !(n == 4 && (cp < 0x10000 || cp > 0x10FFFF)) &&
+           !(cp >= 0xD800 && cp <= 0xDFFF);
+      const std::string where =
+          source + ":" + std::to_string(line) + ":" + std::to_string(i - line_start + 1) + ": ";
+      if (!ok) throw ConfigError(where + "invalid UTF-8");
+      if (in != In::kComment) {
+        throw ConfigError(where +
+                          "non-ASCII character outside a comment (keys and values must be ASCII)");
+      }
+      i += n;
+      continue;
+    }
+    if (c == '\n') {
+      ++line;
+      line_start = i + 1;
+      if (in == In::kComment || in == In::kBasic || in == In::kLiteral) in = In::kCode;
+      ++i;
+      continue;
+    }
+    switch (in) {
+      case In::kCode:
+        if (c == '#') {
+          in = In::kComment;
+        } else if (starts(i, R"(""")")) {
+          in = In::kMlBasic;
+          i += 2;
+        } else if (starts(i, "'''")) {
+          in = In::kMlLiteral;
+          i += 2;
+        } else if (c == '"') {
+          in = In::kBasic;
+        } else if (c == '\'') {
+          in = In::kLiteral;
+        }
+        break;
+      case In::kComment:
+        break;
+      case In::kBasic:
+        if (c == '\\' && at(i + 1) != 0 && at(i + 1) < 0x80 && at(i + 1) != '\n') {
+          ++i;  // the escaped character cannot end the string
+        } else if (c == '"') {
+          in = In::kCode;
+        }
+        break;
+      case In::kLiteral:
+        if (c == '\'') in = In::kCode;
+        break;
+      case In::kMlBasic:
+      case In::kMlLiteral: {
+        const char quote = in == In::kMlBasic ? '"' : '\'';
+        if (in == In::kMlBasic && c == '\\' && at(i + 1) != 0 && at(i + 1) < 0x80 &&
+            at(i + 1) != '\n') {
+          ++i;
+        } else if (c == static_cast<unsigned char>(quote)) {
+          // A run of 3 to 5 quotes closes the string (up to two belong to its content).
+          std::size_t run = 1;
+          while (at(i + run) == static_cast<unsigned char>(quote))
+            ++run;
+          if (run >= 3) in = In::kCode;
+          i += run - 1;
+        }
+        break;
+      }
+    }
+    ++i;
+  }
+}
 
 // Typed access to one table; remembers which keys were read so unknown keys can be reported.
 class Table {
@@ -30,21 +156,22 @@ class Table {
   void str(const std::string& key, std::string* out) {
     const toml::node* n = get(key);
     if (n == nullptr) return;
-    const auto v = n->value<std::string>();
-    if (!n->is_string() || !v) fail(key, "expected a string");
-    *out = *v;
+    if (!n->is_string()) fail(key, "expected a string");
+    *out = n->as_string()->get();
   }
   void boolean(const std::string& key, bool* out) {
     const toml::node* n = get(key);
     if (n == nullptr) return;
     if (!n->is_boolean()) fail(key, "expected true or false");
-    *out = *n->value<bool>();
+    *out = n->as_boolean()->get();
   }
   void number(const std::string& key, double* out, double lo, double hi) {
     const toml::node* n = get(key);
     if (n == nullptr) return;
     if (!n->is_number()) fail(key, "expected a number");
-    const double v = *n->value<double>();
+    const std::optional<double> exact = exact_double(*n);
+    if (!exact) fail(key, kInexactInteger);
+    const double v = *exact;
     if (!(v >= lo && v <= hi))  // also rejects nan
       fail(key, "out of range [" + std::to_string(lo) + ", " + std::to_string(hi) + "]");
     *out = v;
@@ -54,7 +181,9 @@ class Table {
     const toml::node* n = get(key);
     if (n == nullptr) return;
     if (!n->is_number()) fail(key, "expected a number (or nan)");
-    const double v = *n->value<double>();
+    const std::optional<double> exact = exact_double(*n);
+    if (!exact) fail(key, kInexactInteger);
+    const double v = *exact;
     if (std::isnan(v)) {
       *out = v;
       return;
@@ -68,7 +197,7 @@ class Table {
     const toml::node* n = get(key);
     if (n == nullptr) return;
     if (!n->is_integer()) fail(key, "expected an integer");
-    const std::int64_t v = *n->value<std::int64_t>();
+    const std::int64_t v = n->as_integer()->get();
     if (v < lo || v > hi)
       fail(key, "out of range [" + std::to_string(lo) + ", " + std::to_string(hi) + "]");
     *out = static_cast<Int>(v);
@@ -115,6 +244,7 @@ class Table {
 }  // namespace
 
 Config parse_config(const std::string& text, const std::string& source) {
+  check_text(text, source);
   toml::table root;
   try {
     root = toml::parse(text, source);
@@ -164,21 +294,24 @@ Config parse_config(const std::string& text, const std::string& source) {
   m.integer("serial_baud", &mc.serial_baud, 300, 4'000'000);
   m.integer("serial_reconnect_ms", &mc.serial_reconnect_ms, 10, 600'000);
   m.integer("serial_latency_us", &mc.serial_latency_us, 0, 1'000'000);
-  auto as_double = [&m](const toml::node* n, const std::string& key) {
+  // |nT_per_volt| up to 1e9 (1 T per volt) covers any fluxgate electronics by orders of magnitude.
+  auto as_nT_per_volt = [&m](const toml::node* n, const std::string& key) {
     if (n == nullptr || !n->is_number()) m.fail(key, "expected numbers");
-    const double v = *n->value<double>();
-    if (!std::isfinite(v) || v == 0) m.fail(key, "expected finite non-zero numbers");
+    const std::optional<double> exact = exact_double(*n);
+    if (!exact) m.fail(key, kInexactInteger);
+    const double v = *exact;
+    if (!(std::abs(v) <= 1e9) || v == 0) m.fail(key, "expected non-zero numbers within +-1e9");
     return v;
   };
   auto as_u8 = [&m](std::int64_t hi) {
     return [&m, hi](const toml::node* n, const std::string& key) {
       if (n == nullptr || !n->is_integer()) m.fail(key, "expected integers");
-      const std::int64_t v = *n->value<std::int64_t>();
+      const std::int64_t v = n->as_integer()->get();
       if (v < 0 || v > hi) m.fail(key, "values must be in [0, " + std::to_string(hi) + "]");
       return static_cast<std::uint8_t>(v);
     };
   };
-  m.array("nT_per_volt", &mc.adc.nT_per_volt, as_double);
+  m.array("nT_per_volt", &mc.adc.nT_per_volt, as_nT_per_volt);
   m.array("channel_of_axis", &mc.adc.channel_of_axis, as_u8(3));
   m.array("gain_code", &mc.adc.gain_code, as_u8(7));
   m.integer("stuck_count", &mc.adc.stuck_count, 0, 1'000'000);
@@ -188,6 +321,8 @@ Config parse_config(const std::string& text, const std::string& source) {
   ins.str("can_interface", &c.ins.can_interface);
   ins.number("rate_hz", &c.ins.rate_hz, 1, 1000);
   ins.integer("latency_comp_us", &c.ins.latency_comp_us, 0, 1'000'000);
+  ins.integer("fusion_horizon_us", &c.ins.fusion_horizon_us, 0, 1'000'000);
+  ins.number_or_nan("time_offset_s", &c.ins.time_offset_s, -10, 10);
   ins.boolean("require_attitude_valid", &c.ins.require_attitude_valid);
   Table ids = ins.sub("can_ids");
   ids.integer("status_01", &c.ins.ids.status_01, 0, 0x7FF);

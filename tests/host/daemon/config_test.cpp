@@ -1,0 +1,105 @@
+// magvecd's TOML configuration (host/daemon/config.hpp): numbers that have no exact double and
+// text toml++ must never see (invalid UTF-8, non-ASCII outside comments) are configuration errors
+// naming the file, the key or the line and column.
+#include "magvec/host/daemon/config.hpp"
+
+#include <gtest/gtest.h>
+
+#include <string>
+
+namespace magvec::host::daemon {
+namespace {
+
+std::string error_of(const std::string& text) {
+  try {
+    (void)parse_config(text, "cfg.toml");
+  } catch (const ConfigError& e) {
+    return e.what();
+  }
+  return "no error";
+}
+
+// Regression: value<double>() of an integer beyond 2^53 is an empty optional; it was dereferenced.
+TEST(DaemonConfigNumbers, IntegersWithoutAnExactDoubleAreRejected) {
+  const std::string nt =
+      error_of("[devices.magnetometer]\nnT_per_volt = [9007199254740993, 1e5, 1e5]\n");
+  EXPECT_NE(nt.find("cfg.toml: devices.magnetometer.nT_per_volt: integer beyond 2^53"),
+            std::string::npos)
+      << nt;
+  for (const char* text : {"[daemon]\nhealth_period_s = 9007199254740993\n",
+                           "[daemon]\nstatus_period_s = -9223372036854775808\n",
+                           "[calibration]\nreference_field_nT = 9223372036854775807\n",
+                           "[devices.ins]\nrate_hz = 18014398509481985\n"}) {
+    SCOPED_TRACE(text);
+    EXPECT_NE(error_of(text).find("integer beyond 2^53"), std::string::npos) << error_of(text);
+  }
+  // 2^53 itself is exact: an ordinary range error.
+  EXPECT_NE(error_of("[daemon]\nhealth_period_s = 9007199254740992\n").find("out of range"),
+            std::string::npos);
+  // Integers are fine where they are exact.
+  EXPECT_EQ(
+      parse_config("[devices.magnetometer]\nnT_per_volt = [100000, -20000, 5e4]\n", "cfg.toml")
+          .magnetometer.adc.nT_per_volt,
+      (std::array<double, 3>{1e5, -2e4, 5e4}));
+}
+
+TEST(DaemonConfigNumbers, TransferFactorsAreBounded) {
+  for (const char* v : {"1e10", "-1e10", "0", "0.0", "inf", "nan", "9007199254740992.0"}) {
+    SCOPED_TRACE(v);
+    const std::string msg =
+        error_of(std::string("[devices.magnetometer]\nnT_per_volt = [1e5, ") + v + ", 1e5]\n");
+    EXPECT_NE(msg.find("nT_per_volt: expected non-zero numbers within +-1e9"), std::string::npos)
+        << msg;
+  }
+  EXPECT_NE(error_of("[devices.magnetometer]\nnT_per_volt = [1e5, \"1e5\", 1e5]\n")
+                .find("expected numbers"),
+            std::string::npos);
+}
+
+// toml++ 3.3.0 reaches TOML_UNREACHABLE (undefined behaviour) on some non-ASCII text; such text is
+// rejected before it is parsed.
+TEST(DaemonConfigText, NonAsciiOutsideCommentsIsRejectedWithLineAndColumn) {
+  // The upstream report's document: a line-ending backslash in a multi-line string, then U+00A7.
+  EXPECT_EQ(error_of("s = \"\"\"\\\n\xC2\xA7\"\"\"\n"),
+            "cfg.toml:2:1: non-ASCII character outside a comment (keys and values must be ASCII)");
+  // A combining mark (U+032A) where a key is expected.
+  EXPECT_NE(error_of("\xCC\xAA").find("cfg.toml:1:1: non-ASCII character"), std::string::npos);
+  EXPECT_NE(error_of("[daemon]\nstate_dir = \"/var/lib/m\xC3\xA4gvec\"\n")
+                .find("cfg.toml:2:24: non-ASCII"),
+            std::string::npos);
+  // A '#' inside a string does not start a comment.
+  EXPECT_NE(error_of("[lcm]\nurl = \"udpm://#\xC3\xA4\"\n").find("cfg.toml:2:16: non-ASCII"),
+            std::string::npos);
+  EXPECT_NE(error_of("[lcm]\nurl = 'a#\xC3\xA4'\n").find("cfg.toml:2:10: non-ASCII"),
+            std::string::npos);
+  EXPECT_NE(error_of("[lcm]\nurl = '''a\n#\xC3\xA4'''\n").find("cfg.toml:3:2: non-ASCII"),
+            std::string::npos);
+  EXPECT_NE(error_of("[lcm]\nurl = \"a\\\"#\xC3\xA4\"\n").find("cfg.toml:2:12: non-ASCII"),
+            std::string::npos);
+}
+
+TEST(DaemonConfigText, InvalidUtf8IsRejectedEvenInComments) {
+  for (const char* bad : {"\xFF", "\xC0\xAF", "\xE0\x80\xAF", "\xED\xA0\x80", "\xF4\x90\x80\x80",
+                          "\xC3", "\xE2\x82", "\x80"}) {
+    SCOPED_TRACE(testing::PrintToString(std::string(bad)));
+    EXPECT_EQ(error_of(std::string("# ok\n# x") + bad + "\n"), "cfg.toml:2:4: invalid UTF-8");
+  }
+}
+
+TEST(DaemonConfigText, NonAsciiCommentsAreAllowed) {
+  const Config c = parse_config(
+      "# Stra\xC3\x9F"
+      "e, 20 \xC2\xB5T, \xE2\x80\x83 \xF0\x9F\xA7\xAD\n"
+      "[lcm]  # \xC3\xA4\n"
+      "url = '''udpm://a#b'''  # \xC3\xB6 after a multi-line literal\n"
+      "[lcm.channels]\n"
+      "raw_mag = \"\"\"M\"\"\"\"  # \xC3\xBC after a closing quote inside the delimiter\n"
+      "output = \"a\\\\\"  # \xC3\xA9 after an escaped backslash\n",
+      "cfg.toml");
+  EXPECT_EQ(c.lcm.url, "udpm://a#b");
+  EXPECT_EQ(c.lcm.channels.raw_mag, "M\"");
+  EXPECT_EQ(c.lcm.channels.output, "a\\");
+}
+
+}  // namespace
+}  // namespace magvec::host::daemon

@@ -1,0 +1,140 @@
+// Decoding hostile bytes with the generated LCM types (host/lcm/harden_generated.cmake): a string
+// length below 1 (found by tests/fuzz/lcm_decode_fuzz) made decode() throw std::length_error, or
+// overflow for INT32_MIN, instead of rejecting the message; through a subscription that would
+// terminate magvecd on one malformed packet on its command channel.
+#include <gtest/gtest.h>
+
+#include <cstdint>
+#include <cstring>
+#include <lcm/lcm-cpp.hpp>
+#include <limits>
+#include <vector>
+
+#include "magvec/host/daemon/lcm_codec.hpp"
+
+namespace magvec::host::daemon {
+namespace {
+
+template <typename Msg>
+std::vector<std::uint8_t> encode(const Msg& m) {
+  std::vector<std::uint8_t> b(static_cast<std::size_t>(m.getEncodedSize()));
+  EXPECT_EQ(m.encode(b.data(), 0, static_cast<int>(b.size())), static_cast<int>(b.size()));
+  return b;
+}
+
+void put_be32(std::vector<std::uint8_t>& b, std::size_t at, std::int32_t v) {
+  const auto u = static_cast<std::uint32_t>(v);
+  for (std::size_t i = 0; i < 4; ++i)
+    b[at + i] = static_cast<std::uint8_t>(u >> (24 - 8 * i));
+}
+
+constexpr std::int32_t kBadLengths[] = {
+    0,   -1, -2, std::numeric_limits<std::int32_t>::min(), std::numeric_limits<std::int32_t>::max(),
+    1000};
+
+TEST(LcmDecode, StringLengthsBelowOneOrBeyondTheBufferAreRejected) {
+  magvec_lcm::command c{};
+  c.request_id = 7;
+  c.command = "status";
+  const std::vector<std::uint8_t> good = encode(c);
+  magvec_lcm::command back{};
+  ASSERT_EQ(back.decode(good.data(), 0, static_cast<int>(good.size())),
+            static_cast<int>(good.size()));
+  EXPECT_EQ(back.command, "status");
+  for (const std::int32_t len : kBadLengths) {
+    SCOPED_TRACE(len);
+    std::vector<std::uint8_t> bad = good;
+    put_be32(bad, 16, len);  // after the fingerprint and request_id
+    magvec_lcm::command m{};
+    int n = 0;
+    EXPECT_NO_THROW(n = m.decode(bad.data(), 0, static_cast<int>(bad.size())));
+    EXPECT_LT(n, 0);
+  }
+  // An empty string is length 1 (its NUL) and fine.
+  c.command.clear();
+  const std::vector<std::uint8_t> empty = encode(c);
+  EXPECT_EQ(back.decode(empty.data(), 0, static_cast<int>(empty.size())),
+            static_cast<int>(empty.size()));
+  EXPECT_EQ(back.command, "");
+}
+
+// Every string of every type: the length word of the k-th string set to each bad value.
+TEST(LcmDecode, EveryStringFieldOfEveryTypeIsChecked) {
+  magvec_lcm::calibration_state s{};
+  s.calibrator = "li";
+  s.state = "idle";
+  s.failure = "none";
+  s.solver_reason = "";
+  magvec_lcm::command_reply r{};
+  r.message = "ok";
+  magvec_lcm::pipeline_event e = session_start_event(1, "[lcm]\n");
+  // Offsets of the length words: after the fingerprint (8) and the fields before each string.
+  struct Case {
+    std::vector<std::uint8_t> bytes;
+    std::vector<std::size_t> length_offsets;
+    int (*decode)(const std::vector<std::uint8_t>&);
+  };
+  const std::vector<Case> cases = {
+      {encode(s),
+       {8 + 8, 8 + 8 + 4 + 3, 8 + 8 + 4 + 3 + 4 + 5, 8 + 8 + 4 + 3 + 4 + 5 + 4 + 5},
+       [](const std::vector<std::uint8_t>& b) {
+         magvec_lcm::calibration_state m{};
+         return m.decode(b.data(), 0, static_cast<int>(b.size()));
+       }},
+      {encode(r),
+       {8 + 8 + 1},
+       [](const std::vector<std::uint8_t>& b) {
+         magvec_lcm::command_reply m{};
+         return m.decode(b.data(), 0, static_cast<int>(b.size()));
+       }},
+      {encode(e),
+       {8 + 1 + 8},
+       [](const std::vector<std::uint8_t>& b) {
+         magvec_lcm::pipeline_event m{};
+         return m.decode(b.data(), 0, static_cast<int>(b.size()));
+       }},
+  };
+  for (const Case& c : cases) {
+    ASSERT_EQ(c.decode(c.bytes), static_cast<int>(c.bytes.size()));
+    for (const std::size_t at : c.length_offsets) {
+      for (const std::int32_t len : kBadLengths) {
+        SCOPED_TRACE(testing::Message() << "offset " << at << " length " << len);
+        std::vector<std::uint8_t> bad = c.bytes;
+        put_be32(bad, at, len);
+        int n = 0;
+        EXPECT_NO_THROW(n = c.decode(bad));
+        EXPECT_LT(n, 0);
+      }
+    }
+  }
+}
+
+// What magvecd does: a typed subscription on the command channel. The malformed packet is dropped
+// (LCM reports the decode error) and the next good one is delivered.
+TEST(LcmDecode, MalformedCommandPacketDoesNotStopTheSubscriber) {
+  lcm::LCM l("memq://");
+  ASSERT_TRUE(l.good());
+  struct Handler {
+    int count{0};
+    std::string last;
+    void on(const lcm::ReceiveBuffer*, const std::string&, const magvec_lcm::command* m) {
+      ++count;
+      last = m->command;
+    }
+  } h;
+  l.subscribe("MAGVEC_COMMAND", &Handler::on, &h);
+  magvec_lcm::command c{};
+  c.command = "status";
+  std::vector<std::uint8_t> bad = encode(c);
+  put_be32(bad, 16, 0);
+  ASSERT_EQ(l.publish("MAGVEC_COMMAND", bad.data(), static_cast<unsigned>(bad.size())), 0);
+  EXPECT_NO_THROW(l.handleTimeout(1000));
+  EXPECT_EQ(h.count, 0);
+  ASSERT_EQ(l.publish("MAGVEC_COMMAND", &c), 0);
+  EXPECT_GE(l.handleTimeout(1000), 1);
+  EXPECT_EQ(h.count, 1);
+  EXPECT_EQ(h.last, "status");
+}
+
+}  // namespace
+}  // namespace magvec::host::daemon

@@ -4,7 +4,10 @@
 # decode(), through LCM's C dispatcher: magvecd would terminate on one malformed command packet),
 # and INT32_MIN overflows `len - 1` (undefined behaviour, in practice a 2 GiB read). Every string
 # length must count at least its terminating NUL; the check is added to each generated decoder.
-# A generator whose output no longer has the expected pattern fails the build here.
+# The string must also be one C string: its last byte the NUL and no NUL before it (the encoder
+# writes strlen() bytes, so a decoded string with an embedded NUL would re-encode to fewer bytes than
+# getEncodedSize() announces). A generator whose output no longer has the expected pattern fails
+# the build here.
 cmake_minimum_required(VERSION 3.22)
 file(GLOB headers ${DIR}/*.hpp)
 if(NOT headers)
@@ -24,6 +27,7 @@ foreach(h ${headers})
                         "length checks of the known form (lcm-gen changed?)")
   endif()
   string(REGEX REPLACE "if\\(__([A-Za-z0-9_]+)_len__ > maxlen - pos\\) return -1;"
-                       "if(__\\1_len__ < 1 || __\\1_len__ > maxlen - pos) return -1;" text "${text}")
+                       "if(__\\1_len__ < 1 || __\\1_len__ > maxlen - pos || memchr(((const char*)buf) + offset + pos, 0, __\\1_len__) != ((const char*)buf) + offset + pos + __\\1_len__ - 1) return -1;"
+                       text "${text}")
   file(WRITE ${h} "${text}")
 endforeach()

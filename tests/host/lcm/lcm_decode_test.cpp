@@ -1,7 +1,8 @@
-// Decoding hostile bytes with the generated LCM types (host/lcm/harden_generated.cmake): a string
-// length below 1 (found by tests/fuzz/lcm_decode_fuzz) made decode() throw std::length_error, or
-// overflow for INT32_MIN, instead of rejecting the message; through a subscription that would
-// terminate magvecd on one malformed packet on its command channel.
+// Decoding hostile bytes with the generated LCM types (host/lcm/harden_generated.cmake), both found
+// by tests/fuzz/lcm_decode_fuzz: a string length below 1 made decode() throw std::length_error, or
+// overflow for INT32_MIN, instead of rejecting the message (through a subscription that would
+// terminate magvecd on one malformed packet on its command channel); a string with an embedded NUL
+// was accepted and re-encoded inconsistently.
 #include <gtest/gtest.h>
 
 #include <cstdint>
@@ -49,6 +50,15 @@ TEST(LcmDecode, StringLengthsBelowOneOrBeyondTheBufferAreRejected) {
     int n = 0;
     EXPECT_NO_THROW(n = m.decode(bad.data(), 0, static_cast<int>(bad.size())));
     EXPECT_LT(n, 0);
+  }
+  // One C string: NUL last and nowhere before (found by fuzzing: an embedded NUL decoded into a
+  // std::string that re-encoded to fewer bytes than getEncodedSize() announced).
+  for (const std::size_t at : {std::size_t{20}, std::size_t{22}, good.size() - 1}) {
+    SCOPED_TRACE(at);
+    std::vector<std::uint8_t> bad = good;
+    bad[at] = at == good.size() - 1 ? 'x' : 0;
+    magvec_lcm::command m{};
+    EXPECT_LT(m.decode(bad.data(), 0, static_cast<int>(bad.size())), 0);
   }
   // An empty string is length 1 (its NUL) and fine.
   c.command.clear();

@@ -1,0 +1,91 @@
+// SBG INS CAN frames through the attitude decoder. Input: 1 configuration byte (quaternion or
+// Euler source), then frames of [id selector, dlc | extended bit, dlc data bytes].
+// Invariants: every frame lands in exactly one counter/result (samples, malformed, missing_time,
+// ignored, or consumed); a sample is stamped with the receive time of its attitude frame and the
+// INS time of the last EKF_INFO, its quaternion is unit and finite, its accuracies finite and
+// non-negative, its solution mode the low bits of the last SOLUTION_STATUS; a sample needs a fresh
+// EKF_INFO (at most one sample per EKF_INFO).
+#include <cmath>
+
+#include "fuzz_check.hpp"
+#include "magvec/drivers/sbg_can.hpp"
+
+using namespace magvec;
+using namespace magvec::drivers;
+
+extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+  fuzz::Bytes in(data, size);
+  sbg::DecoderConfig cfg;
+  cfg.source =
+      (in.u8() & 1u) != 0 ? sbg::AttitudeMessage::kEuler : sbg::AttitudeMessage::kQuaternion;
+  const sbg::CanIds& ids = cfg.ids;
+  const std::uint32_t known[] = {ids.status_01, ids.status_03, ids.ekf_info,
+                                 ids.ekf_quat,  ids.ekf_euler, ids.ekf_orientation_acc};
+  sbg::CanDecoder dec(cfg);
+
+  std::uint64_t frames = 0, samples = 0, malformed = 0, missing = 0, ignored = 0;
+  bool info_since_sample = false;
+  std::uint32_t last_info_time = 0;
+  while (in.size() > 0) {
+    hal::CanFrame f;
+    const std::uint8_t sel = in.u8();
+    f.id = sel < 192 ? known[sel % 6] : 0x100u + (sel & 0x3Fu);
+    const std::uint8_t d = in.u8();
+    f.dlc = static_cast<std::uint8_t>(d & 0x0Fu) % 9u;
+    f.extended = (d & 0x80u) != 0;
+    for (std::size_t i = 0; i < f.dlc; ++i)
+      f.data[i] = in.u8();  // bytes beyond dlc stay zero (the hal::CanFrame contract)
+    f.t_us = 1000 * ++frames;
+    const sbg::FeedResult r = dec.feed(f);
+    switch (r) {
+      case sbg::FeedResult::kIgnored:
+        ++ignored;
+        break;
+      case sbg::FeedResult::kMalformed:
+        ++malformed;
+        // A corrupt time or attitude frame ends the epoch.
+        if (f.id == ids.ekf_info ||
+            f.id ==
+                (cfg.source == sbg::AttitudeMessage::kQuaternion ? ids.ekf_quat : ids.ekf_euler)) {
+          info_since_sample = false;
+        }
+        break;
+      case sbg::FeedResult::kMissingTime:
+        ++missing;
+        break;
+      case sbg::FeedResult::kConsumed:
+        if (f.id == ids.ekf_info && !f.extended) {
+          info_since_sample = true;
+          last_info_time = dec.raw().ekf_time_us;
+        }
+        break;
+      case sbg::FeedResult::kSample: {
+        ++samples;
+        FUZZ_CHECK(info_since_sample);
+        info_since_sample = false;
+        const hal::AttitudeSample& s = dec.sample();
+        FUZZ_CHECK(s.t_us == f.t_us);
+        FUZZ_CHECK(s.t_ins_us == last_info_time);
+        double n2 = 0;
+        for (const double q : s.q_nb) {
+          FUZZ_CHECK(std::isfinite(q));
+          n2 += q * q;
+        }
+        FUZZ_CHECK(std::abs(n2 - 1.0) < 1e-9);
+        for (const double sg : s.sigma_rad)
+          FUZZ_CHECK(std::isfinite(sg) && sg >= 0);
+        FUZZ_CHECK(s.solution_mode == (dec.raw().solution_status & sbg::kSolutionModeMask));
+        FUZZ_CHECK(f.id == (cfg.source == sbg::AttitudeMessage::kQuaternion ? ids.ekf_quat
+                                                                            : ids.ekf_euler));
+        break;
+      }
+    }
+  }
+  const hal::AttitudeCounters& c = dec.counters();
+  FUZZ_CHECK(c.samples == samples);
+  FUZZ_CHECK(c.malformed == malformed);
+  FUZZ_CHECK(c.missing_time == missing);
+  FUZZ_CHECK(c.ignored == ignored);
+  FUZZ_CHECK(samples + malformed + missing + ignored <= frames);
+  return 0;
+}

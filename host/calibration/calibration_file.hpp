@@ -61,6 +61,9 @@ struct NoiseFigures {
 };
 
 struct CalibrationFile {
+  // False when the method refused before it had any solution (nothing to write, not even with
+  // --force-write). Not stored in the file: a written file always holds a solution.
+  bool has_solution = true;
   core::SensorModel<double> model;
   // Magnetometer time stamp minus the INS time of the attitude it belongs to [s]: positive when
   // the magnetometer lags the INS. A magnetometer sample stamped t pairs with the attitude at

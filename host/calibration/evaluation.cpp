@@ -2,22 +2,9 @@
 #include "calibration/evaluation.hpp"
 
 #include <algorithm>
-#include <bit>
 #include <cmath>
 
 namespace magvec::host {
-
-int coverage_cell(const core::Vec3<double>& h) {
-  constexpr int kBands = 4, kSectors = 8;
-  const double len = h.norm();
-  if (!(len > 0) || !std::isfinite(len)) return -1;
-  const core::Vec3<double> d = h / len;
-  const int band = std::clamp(static_cast<int>((d(2) + 1.0) * 0.5 * kBands), 0, kBands - 1);
-  const double az = std::atan2(d(1), d(0)) + core::kPi<double>;
-  const int sector =
-      std::clamp(static_cast<int>(az / (2.0 * core::kPi<double>)*kSectors), 0, kSectors - 1);
-  return band * kSectors + sector;
-}
 
 void Evaluator::Welford::add(const core::Vec3<double>& x) {
   ++n;
@@ -38,8 +25,7 @@ void Evaluator::add(const core::Vec3<double>& m, double f_nT, const core::Mat3<d
   if (!m.allFinite()) return;
   const core::Vec3<double> h_s = model_.w * (m - model_.o);
   if (!h_s.allFinite()) return;
-  const int cell = coverage_cell(h_s);
-  if (cell >= 0) cells_ |= 1U << static_cast<unsigned>(cell);
+  cells_.add(h_s);
   if (std::isfinite(f_nT)) {
     const double before = m.norm() - f_nT, after = h_s.norm() - f_nT;
     sse_before_ += before * before;
@@ -68,7 +54,7 @@ Evaluation Evaluator::result() const {
     e.enu_sd_before_nT = enu_before_.sd();
     e.enu_sd_after_nT = enu_after_.sd();
   }
-  e.coverage = static_cast<double>(std::popcount(cells_)) / 32.0;
+  e.coverage = cells_.fraction<double>();
   return e;
 }
 

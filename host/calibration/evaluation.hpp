@@ -1,12 +1,14 @@
 // Before/after figures of a calibration over a recording, shared by the calibration runners and
 // the CLI summaries: intensity residual |m| - F (raw) and |W(m - o)| - F (compensated), the spread
-// of the E/N/U components (raw R_bn^T m vs. R_bn^T Rm^T W (m - o), DESIGN.md compensation chain),
-// and the direction coverage of the compensated field over 32 equal-area cells of the sphere (the
-// same cells as core::BatchCalibrator::coverage, so figures of all methods are comparable).
+// of the E/N/U components (raw R_bn^T m vs. R_bn^T Rm^T W (m - o), docs/conventions.md compensation
+// chain), and the direction coverage of the compensated field over 32 equal-area cells of the
+// sphere (core/coverage.hpp, the grid of every calibrator, so figures of all methods are
+// comparable).
 #pragma once
 
 #include <cstdint>
 
+#include "magvec/core/coverage.hpp"
 #include "magvec/core/sensor_model.hpp"
 #include "magvec/core/types.hpp"
 
@@ -48,10 +50,7 @@ class Evaluator {
   std::uint64_t n_f_{0};
   double sse_before_{0}, sse_after_{0}, sum_after_{0};
   Welford enu_before_, enu_after_;
-  std::uint32_t cells_{0};
+  core::CoverageGrid cells_{};
 };
-
-// Cell index (0..31) of a direction: 4 bands equal in z, 8 azimuth sectors (-1 for a zero vector).
-int coverage_cell(const core::Vec3<double>& h);
 
 }  // namespace magvec::host

@@ -1,14 +1,17 @@
 // `magvec calibrate`: calibrates a recording with one of the estimators and writes cal.json.
-//   li-ml     one-step 14-parameter weighted fit (Li et al. 2023 as corrected by ERRATA 000-6)
-//   li        ellipsoid fit + plane compression (Li's two-step method, ERRATA 000-2/3)
-//   li-joint  ellipsoid fit + joint fit of Rm and h_n (ERRATA 000-5)
+//   auto      li-ml when the recording has attitude columns, else ellipsoid (default)
+//   li-ml     one-step 14-parameter weighted fit (Li et al. 2023, docs/equations.md E-Li-6)
+//   li        ellipsoid fit + plane compression (Li's two-step method, E-Li-2/3)
+//   li-joint  ellipsoid fit + joint fit of Rm and h_n (E-Li-5)
 //   ellipsoid ellipsoid fit only (no attitude needed; W up to a rotation, Rm identity)
-//   sine      turntable sine fitting from an XY and an XZ sweep (seed 001, ERRATA 001)
-//   ekf       the 12-state scalar EKF of Ge et al. 2017 (ERRATA 002)
+//   sine      turntable sine fitting from an XY and an XZ sweep (docs/equations.md E-Sine)
+//   ekf       the 12-state scalar EKF of Ge et al. 2017 (E-Ge)
+// Noise figures, the magnetometer-INS time offset and (without an F column) the field are taken
+// from the data unless given; cal.json records what was used.
 // The estimators run through the host/calibration runners (shared with the daemon and reports);
 // this file parses options and prints the human summary. Exit status: 0 ok, 2 bad input (the
 // message names file, line and column), 3 calibration refused (verdict not ok). cal.json is written
-// only for verdict ok, unless --force-write.
+// only for verdict ok, or with --force-write when a solution exists (never without one).
 #include <CLI/CLI.hpp>
 #include <cmath>
 #include <iostream>
@@ -35,7 +38,7 @@ namespace {
 constexpr double kDeg = 180.0 / core::kPi<double>;
 
 struct CalibrateOptions {
-  std::string method = "li-ml";
+  std::string method = "auto";
   std::string in_path;
   std::string sweep_xz;
   std::string out_path;
@@ -43,7 +46,10 @@ struct CalibrateOptions {
   std::string trace;
   double field_nT = std::numeric_limits<double>::quiet_NaN();
   double noise_nT = std::numeric_limits<double>::quiet_NaN();
-  double ins_noise_deg = 0.015;
+  double ins_noise_deg = std::numeric_limits<double>::quiet_NaN();
+  double time_offset_s = std::numeric_limits<double>::quiet_NaN();
+  double max_time_offset_s = 0.1;
+  std::string prior_path;
   double fix_heading_deg = std::numeric_limits<double>::quiet_NaN();
   int passes = 1;
   bool paper_settings = false;
@@ -116,13 +122,36 @@ void print_verdict(const CalibrationQuality& q) {
   std::cout << "\n  verdict: " << q.verdict << " (" << q.reason << ")\n";
 }
 
+// The prior (--prior cal.json): a previous calibration with the 1-sigmas of its Li parameters.
+core::OneStepPrior<double> read_prior(const std::string& path) {
+  const CalibrationFile pc = read_calibration_file(path);
+  core::OneStepPrior<double> prior;
+  if (core::to_li(pc.model, &prior.mean) != core::ConversionStatus::kOk)
+    throw CommandExit(2, path + ": --prior: its W/Rm do not convert to the Li parameters");
+  auto take = [&](const char* key, double scale, core::Vec3<double>* out) {
+    const auto it = pc.sigma.find(key);
+    if (it == pc.sigma.end() || it->second.size() != 3) {
+      throw CommandExit(2, path + ": --prior needs the 1-sigmas sigma." + key +
+                               " (a li-ml calibration has them)");
+    }
+    *out = core::Vec3<double>(it->second[0], it->second[1], it->second[2]) * scale;
+  };
+  take("ks", 1.0, &prior.sigma.ks);
+  take("O_deg", 1.0 / kDeg, &prior.sigma.o_rad);
+  take("Kof_nT", 1.0, &prior.sigma.kof);
+  take("Rm_deg", 1.0 / kDeg, &prior.sigma.rm_rad);
+  return prior;
+}
+
+std::string names_or_none(std::uint32_t bits) {
+  const std::string s = parameter_names(bits);
+  return s.empty() ? "none" : s;
+}
+
 CalibrationFile run_batch_method(const CalibrateOptions& o, core::BatchMethod method) {
   io::CsvReaderOptions ropt;
   if (std::isfinite(o.field_nT)) ropt.f_nT = o.field_nT;
   io::CsvReader reader(o.in_path, ropt);
-  if (!reader.has_f() && !std::isfinite(o.field_nT)) {
-    throw CommandExit(2, o.in_path + ": no F_nT column: give the total field with --field-nT");
-  }
   const bool need_att = method != core::BatchMethod::kEllipsoidOnly;
   if (need_att && reader.attitude_columns() == io::AttitudeColumns::kNone) {
     throw CommandExit(2, o.in_path +
@@ -132,33 +161,86 @@ CalibrationFile run_batch_method(const CalibrateOptions& o, core::BatchMethod me
   }
   BatchRunOptions bo;
   bo.method = method;
-  bo.method_name = o.method;
+  bo.method_name = batch_method_name(method);
   bo.config.field_nT = o.field_nT;
-  bo.config.mag_noise_nT = std::isfinite(o.noise_nT) ? o.noise_nT : 0.3;
-  bo.config.attitude_noise_deg = o.ins_noise_deg;
+  bo.mag_noise_given = std::isfinite(o.noise_nT);
+  bo.ins_noise_given = std::isfinite(o.ins_noise_deg);
+  if (bo.mag_noise_given) bo.config.mag_noise_nT = o.noise_nT;
+  if (bo.ins_noise_given) bo.config.attitude_noise_deg = o.ins_noise_deg;
+  if (std::isfinite(o.time_offset_s)) bo.fixed_time_offset_s = o.time_offset_s;
+  bo.max_time_offset_s = o.max_time_offset_s;
   if (reader.attitude_columns() == io::AttitudeColumns::kQuaternion)
     bo.config.attitude_model = core::AttitudeNoiseModel::kIsotropic;
   if (std::isfinite(o.fix_heading_deg)) {
     bo.config.fix_heading_misalignment = true;
     bo.config.fixed_heading_misalignment_deg = o.fix_heading_deg;
   }
+  core::OneStepPrior<double> prior;
+  if (!o.prior_path.empty()) {
+    if (method != core::BatchMethod::kOneStep)
+      throw CommandExit(2, "--prior applies only to --method li-ml");
+    prior = read_prior(o.prior_path);
+    bo.config.prior = &prior;
+  }
   const BatchRun run = run_batch(reader, bo);
   const core::BatchResult<double>& r = run.result;
   static const std::map<std::string, std::string> kTitle = {
-      {"li-ml", "one-step 14-parameter weighted fit (Li 2023, ERRATA 000-6)"},
-      {"li", "ellipsoid + plane compression (Li 2023 two-step, ERRATA 000-2/3)"},
-      {"li-joint", "ellipsoid + joint Rm/h_n fit (ERRATA 000-5)"},
+      {"li-ml", "one-step 14-parameter weighted fit (Li 2023, docs/equations.md E-Li-6)"},
+      {"li", "ellipsoid + plane compression (Li 2023 two-step, E-Li-2/3)"},
+      {"li-joint", "ellipsoid + joint Rm/h_n fit (E-Li-5)"},
       {"ellipsoid", "ellipsoid fit only (W up to a rotation, no misalignment)"}};
-  std::cout << "magvec calibrate: method " << o.method << ": " << kTitle.at(o.method) << "\n"
-            << "  input " << o.in_path << "; noise " << fixed(bo.config.mag_noise_nT, 3)
-            << " nT/axis";
-  if (need_att) std::cout << ", INS " << fixed(bo.config.attitude_noise_deg, 4) << " deg/angle";
+  std::cout << "magvec calibrate: method " << bo.method_name << ": " << kTitle.at(bo.method_name)
+            << "\n"
+            << "  input " << o.in_path << "\n";
+  const core::BatchNoise<double>& nz = r.noise;
+  std::cout << "  noise: magnetometer " << fixed(nz.mag_nT, 3);
+  if (nz.estimated) std::cout << " +- " << fixed(nz.mag_sigma_nT, 3);
+  std::cout << " nT/axis (" << (nz.estimated ? "estimated from the data" : "given") << ")";
+  if (nz.has_attitude) {
+    std::cout << ", INS " << fixed(nz.attitude_deg, 4);
+    if (nz.estimated) std::cout << " +- " << fixed(nz.attitude_sigma_deg, 4);
+    std::cout << " deg/angle";
+  }
   std::cout << "\n";
+  if (!nz.estimated) {
+    std::cout << "  the data's own estimate: " << fixed(run.data_noise.mag_nT, 3) << " nT";
+    if (run.data_noise.has_attitude)
+      std::cout << ", " << fixed(run.data_noise.attitude_deg, 4) << " deg";
+    std::cout << "\n";
+  }
+  for (const std::string& w : run.warnings)
+    std::cout << "  warning: " << w << "\n";
+  if (run.field_from_data) {
+    std::cout << "  no reference field (no F_nT column, no --field-nT): the median |m| "
+              << fixed(run.field_nT, 1)
+              << " nT stands for it, so scale factors and offsets are relative to it\n";
+  }
+  if (need_att) {
+    const TimeOffsetEstimate& to = run.time_offset;
+    std::cout << "  time offset (magnetometer minus INS): ";
+    if (to.estimated) {
+      std::cout << fixed(to.offset_s * 1e3, 2) << " +- " << fixed(to.sigma_s * 1e3, 2) << " ms ("
+                << to.note << ")\n";
+    } else {
+      std::cout << fixed(to.offset_s * 1e3, 2) << " ms, " << to.note << "\n";
+    }
+  }
   print_counts(run.cal.counts,
                need_att ? ", without attitude " + std::to_string(run.rows_without_attitude) : "");
-  if (r.verdict == core::Verdict::kOk || r.verdict == core::Verdict::kResidualTooLarge ||
-      r.verdict == core::Verdict::kFieldMismatch ||
-      r.verdict == core::Verdict::kInsufficientCoverage) {
+  if (run.keep_stride > 1) {
+    std::cout << "  kept every " << run.keep_stride << "th row (" << run.rows_kept << " of "
+              << run.rows << ") to bound memory\n";
+  }
+  if (bo.config.prior != nullptr && r.has_model) {
+    std::cout << "  prior " << o.prior_path << ": the data determine "
+              << names_or_none(r.quality.updated)
+              << "; moved from the prior: " << names_or_none(r.quality.moved) << "\n";
+  }
+  if (r.has_model && r.quality.undetermined != 0 && bo.config.prior == nullptr) {
+    std::cout << "  not determined by the data: " << parameter_names(r.quality.undetermined)
+              << "\n";
+  }
+  if (r.has_model) {
     print_li(r.li, method == core::BatchMethod::kOneStep ? &r.sigma : nullptr, need_att);
     if (method == core::BatchMethod::kPlaneCompression || method == core::BatchMethod::kJoint) {
       std::cout << "    (two-step: 1-sigma of the misalignment only)\n"
@@ -182,7 +264,7 @@ CalibrationFile run_batch_method(const CalibrateOptions& o, core::BatchMethod me
     std::cout << "  pitch/roll spread " << fixed(r.quality.tilt_spread_deg, 2) << " deg";
     if (method == core::BatchMethod::kOneStep)
       std::cout << ", chi2/dof " << fixed(r.quality.chi2_per_dof, 3);
-    std::cout << "\n";
+    std::cout << ", residual tail ratio " << fixed(r.quality.tail_ratio, 2) << "\n";
   }
   return run.cal;
 }
@@ -298,28 +380,37 @@ void run(const CalibrateOptions& o) {
     } else if (o.method == "ekf") {
       cal = run_ekf_method(o);
     } else {
-      const core::BatchMethod m = o.method == "li"          ? core::BatchMethod::kPlaneCompression
-                                  : o.method == "li-joint"  ? core::BatchMethod::kJoint
-                                  : o.method == "ellipsoid" ? core::BatchMethod::kEllipsoidOnly
-                                                            : core::BatchMethod::kOneStep;
+      std::string method = o.method;
+      if (method == "auto") {
+        // li-ml needs the attitude; a compass capture without it gets the ellipsoid fit.
+        const io::CsvReader probe(o.in_path);
+        method = probe.attitude_columns() == io::AttitudeColumns::kNone ? "ellipsoid" : "li-ml";
+      }
+      if (!o.prior_path.empty() && method != "li-ml")
+        throw CommandExit(2, "--prior applies only to --method li-ml (a recording with attitude)");
+      const core::BatchMethod m = method == "li"          ? core::BatchMethod::kPlaneCompression
+                                  : method == "li-joint"  ? core::BatchMethod::kJoint
+                                  : method == "ellipsoid" ? core::BatchMethod::kEllipsoidOnly
+                                                          : core::BatchMethod::kOneStep;
       cal = run_batch_method(o, m);
     }
   } catch (const io::CsvError& e) {
-    throw CommandExit(2, e.what());
-  } catch (const CapacityError& e) {
     throw CommandExit(2, e.what());
   }
   cal.provenance.magvec_version = kVersion;
   cal.provenance.created_utc = utc_now_iso8601();
   print_verdict(cal.quality);
   const bool ok = cal.quality.verdict == "ok";
-  if (ok || o.force_write) {
+  if (ok || (o.force_write && cal.has_solution)) {
     write_calibration_file(o.out_path, cal);
     std::cout << "  wrote " << o.out_path
               << (ok ? "\n" : " (verdict not ok, written because of --force-write)\n");
+  } else if (o.force_write) {
+    std::cout << "  nothing written to " << o.out_path
+              << " (--force-write: the method refused before it had any solution to write)\n";
   } else {
     std::cout << "  nothing written to " << o.out_path
-              << " (verdict not ok; --force-write writes it anyway)\n";
+              << " (verdict not ok; --force-write writes the refused solution if one exists)\n";
   }
   if (!ok) throw CommandExit(3, "calibration refused: " + cal.quality.verdict);
 }
@@ -330,31 +421,43 @@ void register_calibrate(CLI::App& app) {
   auto opts = std::make_shared<CalibrateOptions>();
   CLI::App* cmd = app.add_subcommand(
       "calibrate",
-      "Calibrate a recording and write cal.json (exit 0 ok, 2 bad input, 3 refused). Batch "
-      "methods hold at most " +
-          std::to_string(kHostBatchCapacity) + " rows in memory; more is an error.");
+      "Calibrate a recording and write cal.json (exit 0 ok, 2 bad input, 3 refused). Noise, the "
+      "magnetometer-INS time offset and (without F_nT) the field come from the data unless "
+      "given.");
   cmd->add_option("--method", opts->method,
-                  "li-ml (one-step, default) | li (plane compression) | li-joint | ellipsoid "
-                  "(no attitude) | sine | ekf")
-      ->check(CLI::IsMember({"li-ml", "li", "li-joint", "ellipsoid", "sine", "ekf"}))
+                  "auto (li-ml with attitude, else ellipsoid) | li-ml (one-step) | li (plane "
+                  "compression) | li-joint | ellipsoid (no attitude) | sine | ekf")
+      ->check(CLI::IsMember({"auto", "li-ml", "li", "li-joint", "ellipsoid", "sine", "ekf"}))
       ->capture_default_str();
   cmd->add_option("--in", opts->in_path, "Input CSV (for sine: the XY sweep)")->required();
   cmd->add_option("--sweep-xz", opts->sweep_xz, "sine: the XZ-sweep CSV (theta_deg column)");
-  cmd->add_option("--fixture", opts->fixture, "sine: XZ-sweep fixture (ERRATA 001-4)")
+  cmd->add_option("--fixture", opts->fixture, "sine: XZ-sweep fixture (docs/equations.md E-Sine-4)")
       ->check(CLI::IsMember({"plane-normal", "housing-y"}));
   cmd->add_option("--out", opts->out_path, "Output cal.json (written atomically)")->required();
   cmd->add_option("--field-nT", opts->field_nT,
                   "Total field for rows without F_nT (sine: |B|, default the mean F_nT)")
       ->check(CLI::PositiveNumber);
-  cmd->add_option("--noise-nT", opts->noise_nT,
-                  "Magnetometer noise per axis, 1-sigma (default 0.3 batch, 5 sine, 10 ekf)")
+  cmd->add_option(
+         "--noise-nT", opts->noise_nT,
+         "Magnetometer noise per axis, 1-sigma (default: estimated from the data; sine: 5)")
       ->check(CLI::PositiveNumber);
-  cmd->add_option("--ins-noise-deg", opts->ins_noise_deg, "INS noise per angle, 1-sigma")
-      ->check(CLI::PositiveNumber)
+  cmd->add_option("--ins-noise-deg", opts->ins_noise_deg,
+                  "INS noise per angle, 1-sigma (default: estimated from the data)")
+      ->check(CLI::PositiveNumber);
+  cmd->add_option("--time-offset-s", opts->time_offset_s,
+                  "Fix the magnetometer-minus-INS time offset [s] instead of estimating it "
+                  "(positive: the magnetometer lags)")
+      ->check(CLI::Range(-10.0, 10.0));
+  cmd->add_option("--max-time-offset-s", opts->max_time_offset_s,
+                  "Search range of the time-offset estimate, +- [s]")
+      ->check(CLI::Range(0.001, 2.0))
       ->capture_default_str();
+  cmd->add_option("--prior", opts->prior_path,
+                  "A previous cal.json (li-ml, with its sigmas): solve the regularised problem "
+                  "that updates only what these data determine");
   cmd->add_option("--fix-heading-misalignment-deg", opts->fix_heading_deg,
                   "Hold the misalignment about the vertical (alpha_m) at this value instead of "
-                  "refusing level-only data (ERRATA 000-4)");
+                  "refusing level-only data (docs/equations.md E-Li-4)");
   cmd->add_flag("--paper-settings", opts->paper_settings,
                 "ekf: the printed x0/P0/Q/R of Ge 2017 (EkfConfig::paper(); they fail)");
   cmd->add_option("--passes", opts->passes, "ekf: run the data this many times through the filter")
@@ -364,7 +467,8 @@ void register_calibrate(CLI::App& app) {
       "--trace", opts->trace,
       "ekf: write the state, 1-sigma, NIS and intensity 1-sigma per sample to this CSV");
   cmd->add_flag("--force-write", opts->force_write,
-                "Write cal.json even when the verdict is not ok (the verdict is recorded in it)");
+                "Write cal.json even when the verdict is not ok, if the method has a solution "
+                "(the verdict is recorded in it); never writes without one");
   cmd->callback([opts] { run(*opts); });
 }
 

@@ -36,7 +36,7 @@ TEST(BatchCalibrator, TooFewAndNonFiniteSamplesAreCounted) {
   Mat3<double> bad = r;
   bad(0, 0) = NAN;
   EXPECT_EQ(cal->add_sample(Vec3<double>(1, 1, 1), 50000, bad), AddStatus::kSkippedNonFinite);
-  EXPECT_EQ(cal->add_sample(Vec3<double>(1, 1, 1), 50000, r), AddStatus::kAccepted);
+  EXPECT_EQ(cal->add_sample(Vec3<double>(20000, 20000, 40000), 50000, r), AddStatus::kAccepted);
   const BatchResult<double> res = cal->solve();
   EXPECT_EQ(res.verdict, Verdict::kTooFewSamples);
   EXPECT_EQ(res.counts.skipped_nonfinite, 3U);

@@ -1,13 +1,18 @@
-// Batch calibration entry point (issue 3): collects samples {raw m, scalar reference F, R_bn} in a
-// fixed-capacity store and solves Li et al. 2023 as corrected by ERRATA 000:
+// Batch calibration entry point: collects samples {raw m, scalar reference F, R_bn} in a store
+// (fixed capacity on the MCU, growing on the host) and solves Li et al. 2023 with the corrections
+// of docs/equations.md:
 //   kEllipsoidOnly    ellipsoid fit (algebraic + geometric refinement), no attitude needed
-//   kPlaneCompression ellipsoid + plane compression (Li's two-step method, 000-2/3)
-//   kJoint            ellipsoid + joint fit of Rm and h_n (000-5)
-//   kOneStep          the above as a start, then the 14-parameter weighted fit (000-6; default)
+//   kPlaneCompression ellipsoid + plane compression (Li's two-step method, E-Li-2/3)
+//   kJoint            ellipsoid + joint fit of Rm and h_n (E-Li-5)
+//   kOneStep          the above as a start, then the 14-parameter weighted fit (E-Li-6; default)
+// Noise: given, or estimated from the data (BatchConfig::estimate_noise): the robust scale of the
+// intensity residuals for the ellipsoid, variance components of the one-step fit for the attitude
+// methods. A prior calibration (BatchConfig::prior) turns the one-step fit into the regularised
+// (MAP) problem that updates only what the data determine.
 // Robustness: non-finite rows are skipped and counted; outliers are rejected by an iterated
-// median/MAD screen on the intensity residual |W(m - o)| - F and counted. Quality: coverage of the
-// sphere of field directions (fraction of 32 equal-area cells hit), conditioning, residuals; a
-// specific Verdict for every refusal, never a silent bad calibration.
+// median/MAD screen on the intensity residual |W(m - o)| - F and counted.
+// Acceptance: acceptance.hpp's one policy (no data, units, what the data determine, model and
+// convergence, residuals against the noise, plausibility), never a silent bad calibration.
 #pragma once
 
 #include <algorithm>
@@ -17,6 +22,8 @@
 #include <cstdint>
 #include <limits>
 
+#include "magvec/core/acceptance.hpp"
+#include "magvec/core/coverage.hpp"
 #include "magvec/core/ellipsoid_fit.hpp"
 #include "magvec/core/misalignment.hpp"
 #include "magvec/core/one_step.hpp"
@@ -28,79 +35,57 @@ namespace magvec::core {
 
 enum class BatchMethod : std::uint8_t { kEllipsoidOnly, kPlaneCompression, kJoint, kOneStep };
 
-enum class Verdict : std::uint8_t {
-  kOk,
-  kTooFewSamples,
-  kNotAnEllipsoid,
-  kIllConditioned,
-  kInsufficientCoverage,
-  kFieldMismatch,                    // data and scalar reference disagree (residual or scale)
-  kUnobservableHeadingMisalignment,  // no pitch/roll variety (ERRATA 000-4)
-  kResidualTooLarge,                 // vector residuals far above the stated noise
-  kNotConverged,
-};
-
-inline const char* verdict_name(Verdict v) noexcept {
-  switch (v) {
-    case Verdict::kOk:
-      return "ok";
-    case Verdict::kTooFewSamples:
-      return "too_few_samples";
-    case Verdict::kNotAnEllipsoid:
-      return "not_an_ellipsoid";
-    case Verdict::kIllConditioned:
-      return "ill_conditioned";
-    case Verdict::kInsufficientCoverage:
-      return "insufficient_coverage";
-    case Verdict::kFieldMismatch:
-      return "field_mismatch";
-    case Verdict::kUnobservableHeadingMisalignment:
-      return "unobservable_heading_misalignment";
-    case Verdict::kResidualTooLarge:
-      return "residual_too_large";
-    case Verdict::kNotConverged:
-      return "not_converged";
-  }
-  return "unknown";
-}
-
 enum class AddStatus : std::uint8_t { kAccepted, kSkippedNonFinite, kStoreFull };
 
 template <typename Scalar>
 struct BatchConfig {
   Scalar field_nT = std::numeric_limits<Scalar>::quiet_NaN();  // used when a sample's F is NaN
-  Scalar mag_noise_nT = Scalar(0.3);                           // per axis, 1-sigma
-  Scalar attitude_noise_deg = Scalar(0.015);                   // per INS angle, 1-sigma
+  // Noise per magnetometer axis and per INS angle, 1-sigma. With estimate_noise they are only
+  // start values: the fit estimates both from its residuals and reports them.
+  Scalar mag_noise_nT = Scalar(0.3);
+  Scalar attitude_noise_deg = Scalar(0.015);
+  bool estimate_noise = false;
   AttitudeNoiseModel attitude_model = AttitudeNoiseModel::kLiEuler;
-  bool fix_heading_misalignment = false;  // hold am (ERRATA 000-4) instead of refusing
+  bool fix_heading_misalignment = false;  // hold am (docs/equations.md E-Li-4) instead of refusing
   Scalar fixed_heading_misalignment_deg{0};
-  std::size_t min_samples = 12;
-  Scalar min_coverage = Scalar(0.2);
-  Scalar min_tilt_spread_deg = Scalar(2);  // RMS spread of the body-frame vertical
+  AcceptanceLimits<Scalar> limits{};
   Scalar max_misalignment_sigma_deg = Scalar(0.5);
-  Scalar max_intensity_rms_nT = Scalar(50);
-  Scalar min_scale = Scalar(0.5), max_scale = Scalar(2);
-  Scalar max_chi2_per_dof = Scalar(25);
-  Scalar outlier_k = Scalar(5);         // threshold in robust SDs (1.4826 MAD)
-  Scalar outlier_floor_nT = Scalar(1);  // never reject below this intensity residual
+  Scalar outlier_k = Scalar(5);  // threshold in robust SDs (1.4826 MAD)
   int outlier_max_passes = 8;
-  int max_iterations = 30;
+  int max_iterations = 50;
+  // A previous calibration with its 1-sigmas: the one-step fit solves the MAP problem.
+  const OneStepPrior<Scalar>* prior = nullptr;
 };
 
 template <typename Scalar>
 struct BatchQuality {
-  Scalar coverage{0};  // fraction of 32 equal-area direction cells containing data
+  Scalar coverage{0};  // fraction of the 32 equal-area direction cells containing data
   Scalar rcond{0};     // of the final solver's scaled normal matrix
   Scalar ellipsoid_rcond{0};
   Scalar tilt_spread_deg{0};                       // RMS spread of the vertical in body axes
   Scalar intensity_rms_raw_nT{0};                  // |m| - F before calibration
   Scalar intensity_rms_nT{0};                      // |W(m - o)| - F after
   Vec3<Scalar> enu_rms_nT = Vec3<Scalar>::Zero();  // spread of R^T Rm^T h_s about h_n (E, N, U)
-  Scalar chi2_per_dof{0};                          // one-step only
+  Scalar chi2_per_dof{0};  // against the noise in use (1 by construction when estimated)
+  Scalar tail_ratio{0};    // RMS over robust scale of the normalised residuals
+  Scalar median_norm_nT{0}, median_f_nT{0};
   int iterations{0};
+  std::uint32_t undetermined{0};  // one-step parameter bits the data do not determine
+  std::uint32_t updated{0};       // with a prior: parameters the data updated
+  std::uint32_t moved{0};         // with a prior: parameters that moved from it
+};
+
+// Noise figures in use: estimated (with their 1-sigma) or given.
+template <typename Scalar>
+struct BatchNoise {
+  bool estimated = false;
+  Scalar mag_nT{0}, mag_sigma_nT{0};
+  bool has_attitude = false;
+  Scalar attitude_deg{0}, attitude_sigma_deg{0};
 };
 
 struct BatchCounts {
+  std::size_t offered{0};            // add_sample calls
   std::size_t added{0};              // accepted into the store
   std::size_t skipped_nonfinite{0};  // NaN/inf reading, field or attitude
   std::size_t dropped_full{0};       // store full
@@ -113,13 +98,18 @@ struct BatchResult {
   Verdict verdict = Verdict::kTooFewSamples;
   BatchMethod method = BatchMethod::kOneStep;
   SensorModel<Scalar> model{};
+  bool has_model = false;  // a solution exists (possibly refused); false: nothing to write
   LiParams<Scalar> li{};
   LiSigmas<Scalar> sigma{};  // one-step: full; two-step: Rm only
   bool has_h_n = false;
   Vec3<Scalar> h_n_nT = Vec3<Scalar>::Zero();
   Vec3<Scalar> h_n_sigma_nT = Vec3<Scalar>::Zero();
   bool heading_fixed = false;
+  bool converged = false;
+  Scalar cost{0};  // one-step: chi^2 (+ prior term) at the solution
+  BatchNoise<Scalar> noise{};
   BatchQuality<Scalar> quality{};
+  AcceptanceEvidence<Scalar> evidence{};
   BatchCounts counts{};
 
   bool ok() const noexcept { return verdict == Verdict::kOk; }
@@ -129,7 +119,6 @@ template <typename Scalar, std::size_t Capacity>
 class BatchCalibrator {
  public:
   static constexpr std::size_t kCapacity = Capacity;
-  static constexpr int kCoverageBands = 4, kCoverageSectors = 8;  // 32 equal-area cells
 
   explicit BatchCalibrator(const BatchConfig<Scalar>& cfg = BatchConfig<Scalar>{}) noexcept
       : cfg_(cfg) {}
@@ -157,6 +146,8 @@ class BatchCalibrator {
     res.method = method;
     res.heading_fixed = cfg_.fix_heading_misalignment && method != BatchMethod::kEllipsoidOnly;
     const bool need_att = method != BatchMethod::kEllipsoidOnly;
+    const bool given = !cfg_.estimate_noise;
+    AcceptanceEvidence<Scalar>& ev = res.evidence;
     for (std::size_t i = 0; i < store_.size(); ++i) {
       store_[i].flags = static_cast<std::uint8_t>(store_[i].flags & ~kSampleOutlier);
     }
@@ -166,46 +157,65 @@ class BatchCalibrator {
       n_att += store_[i].has_attitude() ? 1U : 0U;
     const std::size_t n_avail = need_att ? n_att : store_.size();
     res.counts.used = n_avail;
-    if (n_avail < cfg_.min_samples || n_avail < EllipsoidFit<Scalar>::kMinSamples) {
-      res.verdict = Verdict::kTooFewSamples;
+    ev.rows = counts_.offered;
+    ev.usable = n_avail;
+    ev.noise_given = given;
+    ev.heading_fixed = res.heading_fixed;
+    ev.has_prior = cfg_.prior != nullptr && method == BatchMethod::kOneStep;
+    medians(need_att, &ev.median_norm_nT, &ev.median_f_nT);
+    res.quality.median_norm_nT = ev.median_norm_nT;
+    res.quality.median_f_nT = ev.median_f_nT;
+    // 1-3 before any fit: rows, units, sample count, pitch/roll variety, raw direction coverage
+    // (the field seen from the sensor; offsets are small against |h| for a fluxgate, and a cap
+    // stays a cap whatever the offset).
+    if (need_att) res.quality.tilt_spread_deg = rad_to_deg(tilt_spread());
+    if (need_att) ev.tilt_spread_deg = res.quality.tilt_spread_deg;
+    ev.coverage = raw_coverage(need_att);
+    res.quality.coverage = ev.coverage;
+    if (n_avail < EllipsoidFit<Scalar>::kMinSamples) ev.usable = std::min(ev.usable, n_avail);
+    if (n_avail < EllipsoidFit<Scalar>::kMinSamples || judge(ev, cfg_.limits) != Verdict::kOk) {
+      res.verdict = judge(ev, cfg_.limits);
+      if (res.verdict == Verdict::kOk) res.verdict = Verdict::kTooFewSamples;
       return res;
     }
     const Normalization<Scalar> norm = normalization();
     res.quality.intensity_rms_raw_nT =
-        intensity_rms(Mat3<Scalar>::Identity(), Vec3<Scalar>::Zero());
-    // Pitch/roll variety first: without it neither the misalignment nor the ellipsoid is defined,
-    // and the root cause is the attitude set (ERRATA 000-4).
-    if (need_att) {
-      res.quality.tilt_spread_deg = rad_to_deg(tilt_spread());
-      if (res.quality.tilt_spread_deg < cfg_.min_tilt_spread_deg &&
-          !cfg_.fix_heading_misalignment) {
-        res.verdict = Verdict::kUnobservableHeadingMisalignment;
-        return res;
-      }
-    }
+        intensity_rms(Mat3<Scalar>::Identity(), Vec3<Scalar>::Zero(), need_att);
+
     // Ellipsoid with the iterated median/MAD screen.
     EllipsoidSolution<Scalar> ell = robust_ellipsoid(norm, need_att, &res.counts.outliers);
     res.quality.ellipsoid_rcond = ell.rcond;
     res.counts.used = n_avail - res.counts.outliers;
-    if (ell.status == EllipsoidStatus::kTooFewSamples) {
-      res.verdict = Verdict::kTooFewSamples;
+    ev.usable = res.counts.used;
+    const bool ell_ok =
+        ell.status == EllipsoidStatus::kOk || ell.status == EllipsoidStatus::kNotConverged;
+    const bool from_prior = ev.has_prior && need_att;
+    if (!ell_ok && !from_prior) {
+      ev.not_an_ellipsoid = ell.status == EllipsoidStatus::kNotAnEllipsoid;
+      ev.ill_conditioned = ell.status == EllipsoidStatus::kIllConditioned;
+      if (ell.status == EllipsoidStatus::kTooFewSamples) ev.usable = 0;
+      res.verdict = judge(ev, cfg_.limits);
       return res;
     }
-    if (ell.status == EllipsoidStatus::kNotAnEllipsoid) {
-      res.verdict = Verdict::kNotAnEllipsoid;
-      return res;
-    }
-    if (ell.status == EllipsoidStatus::kIllConditioned) {
-      res.verdict = Verdict::kIllConditioned;
-      return res;
+    // Magnetometer noise start (or final, for the ellipsoid): robust scale of |h| - F.
+    Scalar mag_noise = cfg_.mag_noise_nT;
+    if (cfg_.estimate_noise && ell_ok) {
+      const Scalar est = robust_intensity_scale(ell.w, ell.o, need_att);
+      if (est > Scalar(0)) mag_noise = est;
     }
     if (method == BatchMethod::kEllipsoidOnly) {
       ell = refine_ellipsoid_geometric(store_, norm, ell, cfg_.max_iterations);
       res.model = ell.model();
+      res.has_model = ell.w.allFinite() && ell.o.allFinite();
       res.li = ell.li;
       res.quality.rcond = ell.rcond;
       res.quality.iterations = ell.iterations;
-      finish(&res, ell.status == EllipsoidStatus::kOk ? Verdict::kOk : Verdict::kNotConverged);
+      res.converged = ell.status == EllipsoidStatus::kOk;
+      ev.converged = res.converged;
+      ev.not_an_ellipsoid = ell.status == EllipsoidStatus::kNotAnEllipsoid;
+      ev.ill_conditioned = ell.status == EllipsoidStatus::kIllConditioned;
+      intensity_noise(res.model, need_att, mag_noise, &res);
+      finish(&res);
       return res;
     }
 
@@ -213,66 +223,87 @@ class BatchCalibrator {
     mopt.fix_heading = cfg_.fix_heading_misalignment;
     mopt.fixed_heading_rad = deg_to_rad(cfg_.fixed_heading_misalignment_deg);
     mopt.max_sigma_rad = deg_to_rad(cfg_.max_misalignment_sigma_deg);
-    mopt.noise_floor =
-        std::hypot(cfg_.mag_noise_nT / norm.scale, deg_to_rad(cfg_.attitude_noise_deg));
+    mopt.noise_floor = std::hypot(mag_noise / norm.scale, deg_to_rad(cfg_.attitude_noise_deg));
     mopt.max_iterations = cfg_.max_iterations;
-    const MisalignmentSolution<Scalar> mis = method == BatchMethod::kPlaneCompression
-                                                 ? plane_compression(store_, ell.w, ell.o, mopt)
-                                                 : joint_rm_hn(store_, ell.w, ell.o, mopt);
-    res.li = ell.li;
-    res.li.rm_rad = mis.rm_rad;
-    res.sigma.rm_rad = mis.rm_sigma_rad;
-    res.has_h_n = mis.has_h_n;
-    res.h_n_nT = mis.h_n;
-    res.h_n_sigma_nT = mis.h_n_sigma;
-    res.quality.rcond = mis.rcond;
-    res.quality.iterations = mis.iterations;
-    Verdict v = Verdict::kOk;
-    if (mis.status == MisalignmentStatus::kUnobservableHeading)
-      v = Verdict::kUnobservableHeadingMisalignment;
-    if (mis.status == MisalignmentStatus::kIllConditioned) v = Verdict::kIllConditioned;
-    if (mis.status == MisalignmentStatus::kNotConverged) v = Verdict::kNotConverged;
-    if (mis.status == MisalignmentStatus::kTooFewSamples) v = Verdict::kTooFewSamples;
-    if (method == BatchMethod::kOneStep && v == Verdict::kOk) {
-      OneStepOptions<Scalar> oopt;
-      oopt.mag_noise_nT = cfg_.mag_noise_nT;
-      oopt.attitude_noise_rad = deg_to_rad(cfg_.attitude_noise_deg);
-      oopt.attitude_model = cfg_.attitude_model;
-      oopt.fix_heading = cfg_.fix_heading_misalignment;
-      oopt.max_rm_sigma_rad = deg_to_rad(cfg_.max_misalignment_sigma_deg);
-      oopt.max_iterations = cfg_.max_iterations;
-      const OneStepSolution<Scalar> os =
-          OneStepFit<Scalar>::solve(store_, norm, res.li, mis.h_n, oopt);
+    LiParams<Scalar> start = ell.li;
+    Vec3<Scalar> d_start = Vec3<Scalar>::UnitY();
+    MisalignmentStatus mis_status = MisalignmentStatus::kOk;
+    if (from_prior && (!ell_ok || method == BatchMethod::kOneStep)) {
+      // The prior is the start: on a cap the ellipsoid is not determined, and near a good prior
+      // the MAP fit needs no two-step start.
+      start = cfg_.prior->mean;
+      d_start = mean_direction(from_li(start));
+    } else {
+      const MisalignmentSolution<Scalar> mis = method == BatchMethod::kPlaneCompression
+                                                   ? plane_compression(store_, ell.w, ell.o, mopt)
+                                                   : joint_rm_hn(store_, ell.w, ell.o, mopt);
+      start.rm_rad = mis.rm_rad;
+      d_start = mis.h_n;
+      mis_status = mis.status;
+      res.li = start;
+      res.sigma.rm_rad = mis.rm_sigma_rad;
+      res.has_h_n = mis.has_h_n;
+      res.h_n_nT = mis.h_n;
+      res.h_n_sigma_nT = mis.h_n_sigma;
+      res.quality.rcond = mis.rcond;
+      res.quality.iterations = mis.iterations;
+      res.converged = mis.status != MisalignmentStatus::kNotConverged;
+    }
+    res.li = start;
+    if (mis_status == MisalignmentStatus::kUnobservableHeading) ev.tilt_spread_deg = 0;
+    if (mis_status == MisalignmentStatus::kIllConditioned) ev.ill_conditioned = true;
+    if (mis_status == MisalignmentStatus::kTooFewSamples) ev.usable = 0;
+    if (mis_status == MisalignmentStatus::kNotConverged) ev.converged = false;
+    if (method == BatchMethod::kOneStep && mis_status == MisalignmentStatus::kOk) {
+      const OneStepSolution<Scalar> os = OneStepFit<Scalar>::solve(
+          store_, norm, start, d_start, one_step_options(mag_noise, cfg_.attitude_noise_deg));
       res.li = os.li;
       res.sigma = os.sigma;
       res.h_n_nT = os.h_n;
       res.h_n_sigma_nT = os.h_n_sigma;
       res.has_h_n = true;
+      res.cost = os.cost;
+      res.converged = os.converged;
       res.quality.rcond = os.rcond;
       res.quality.chi2_per_dof = os.chi2_per_dof;
       res.quality.iterations = os.iterations;
-      switch (os.status) {
-        case OneStepStatus::kOk:
-          break;
-        case OneStepStatus::kTooFewSamples:
-          v = Verdict::kTooFewSamples;
-          break;
-        case OneStepStatus::kUnobservableHeading:
-          v = Verdict::kUnobservableHeadingMisalignment;
-          break;
-        case OneStepStatus::kIllConditioned:
-          v = Verdict::kIllConditioned;
-          break;
-        case OneStepStatus::kNotConverged:
-          v = Verdict::kNotConverged;
-          break;
-      }
-      if (v == Verdict::kOk && os.chi2_per_dof > cfg_.max_chi2_per_dof)
-        v = Verdict::kResidualTooLarge;
+      res.quality.tail_ratio = os.tail_ratio;
+      res.quality.undetermined = os.undetermined;
+      res.quality.updated = os.updated;
+      res.quality.moved = os.moved;
+      res.noise.estimated = os.noise_estimated;
+      res.noise.mag_nT = os.mag_noise_nT;
+      res.noise.mag_sigma_nT = os.mag_noise_sigma_nT;
+      res.noise.has_attitude = true;
+      res.noise.attitude_deg = rad_to_deg(os.attitude_noise_rad);
+      res.noise.attitude_sigma_deg = rad_to_deg(os.attitude_noise_sigma_rad);
+      ev.converged = os.converged;
+      ev.undetermined = os.undetermined;
+      ev.tail_ratio = os.tail_ratio;
+      ev.chi2_per_dof = os.chi2_per_dof;
+      ev.noise_nT = os.mag_noise_nT;
+      if (os.status == OneStepStatus::kIllConditioned) ev.ill_conditioned = true;
+      if (os.status == OneStepStatus::kUnobservableHeading && !ev.has_prior) ev.tilt_spread_deg = 0;
+      if (os.status == OneStepStatus::kTooFewSamples) ev.usable = 0;
     }
     res.model = from_li(res.li);
-    finish(&res, v);
+    res.has_model = res.model.w.allFinite() && res.model.o.allFinite();
+    if (method != BatchMethod::kOneStep) {
+      intensity_noise(res.model, need_att, mag_noise, &res);
+      attitude_noise(&res);
+    }
+    finish(&res);
     return res;
+  }
+
+  // The one-step fit alone from a previous result, at that result's noise figures (no
+  // re-estimation): the profile cost for a search over a nuisance (the time offset) after the
+  // samples' attitudes changed. Status and cost of the fit.
+  OneStepSolution<Scalar> refit_one_step(const BatchResult<Scalar>& from) const noexcept {
+    OneStepOptions<Scalar> o = one_step_options(from.noise.mag_nT, from.noise.attitude_deg);
+    o.estimate_noise = false;
+    o.scale_sigma_by_residual = false;
+    return OneStepFit<Scalar>::solve(store_, normalization(), from.li, from.h_n_nT, o);
   }
 
   // Normalisation of the stored samples: centre = mean reading, scale = mean reference field.
@@ -290,31 +321,33 @@ class BatchCalibrator {
     return norm;
   }
 
-  // Fraction of 32 equal-area cells (4 bands equal in z, 8 sectors) hit by the directions of
-  // h_s = W (m - o) of the samples in use.
+  // Fraction of the direction cells (coverage.hpp) hit by h_s = W (m - o) of the samples in use.
   Scalar coverage(const SensorModel<Scalar>& model) const noexcept {
-    std::uint32_t cells = 0;
+    CoverageGrid grid;
     for (std::size_t i = 0; i < store_.size(); ++i) {
       if (store_[i].outlier()) continue;
-      const Vec3<Scalar> h = model.w * (store_[i].raw() - model.o);
-      const Scalar len = h.norm();
-      if (!(len > Scalar(0))) continue;
-      const Vec3<Scalar> d = h / len;
-      int band = static_cast<int>((d(2) + Scalar(1)) * Scalar(0.5) * Scalar(kCoverageBands));
-      band = std::clamp(band, 0, kCoverageBands - 1);
-      const Scalar az = std::atan2(d(1), d(0)) + kPi<Scalar>;
-      int sector = static_cast<int>(az / (Scalar(2) * kPi<Scalar>)*Scalar(kCoverageSectors));
-      sector = std::clamp(sector, 0, kCoverageSectors - 1);
-      cells |= 1U << static_cast<unsigned>(band * kCoverageSectors + sector);
+      grid.add(Vec3<Scalar>(model.w * (store_[i].raw() - model.o)));
     }
-    int hit = 0;
-    for (unsigned k = 0; k < 32U; ++k)
-      hit += static_cast<int>((cells >> k) & 1U);
-    return static_cast<Scalar>(hit) / Scalar(kCoverageBands * kCoverageSectors);
+    return grid.fraction<Scalar>();
   }
 
  private:
+  OneStepOptions<Scalar> one_step_options(Scalar mag_noise_nT, Scalar att_deg) const noexcept {
+    OneStepOptions<Scalar> oopt;
+    oopt.mag_noise_nT = mag_noise_nT;
+    oopt.attitude_noise_rad = deg_to_rad(att_deg);
+    oopt.attitude_model = cfg_.attitude_model;
+    oopt.estimate_noise = cfg_.estimate_noise;
+    oopt.fix_heading = cfg_.fix_heading_misalignment;
+    oopt.max_rm_sigma_rad = deg_to_rad(cfg_.max_misalignment_sigma_deg);
+    oopt.max_relative_sigma = cfg_.limits.max_relative_sigma;
+    oopt.max_iterations = cfg_.max_iterations;
+    oopt.prior = cfg_.prior;
+    return oopt;
+  }
+
   AddStatus add(const Vec3<Scalar>& m, Scalar f, const Mat3<Scalar>* r_bn) noexcept {
+    ++counts_.offered;
     if (!std::isfinite(f)) f = cfg_.field_nT;
     const bool bad_att = r_bn != nullptr && !r_bn->allFinite();
     if (!m.allFinite() || !std::isfinite(f) || !(f > Scalar(0)) || bad_att) {
@@ -333,10 +366,118 @@ class BatchCalibrator {
     return (!need_att || s.has_attitude()) && !s.outlier();
   }
 
+  // Medians of |m| and of F over the samples the method can use (the unit check).
+  void medians(bool need_att, Scalar* norm_nT, Scalar* f_nT) noexcept {
+    if (!scratch_.ensure(store_.size())) return;
+    std::size_t k = 0;
+    for (std::size_t i = 0; i < store_.size(); ++i)
+      if (in_use(store_[i], need_att)) scratch_.data()[k++] = store_[i].raw().norm();
+    if (k == 0) return;
+    *norm_nT = median(k);
+    k = 0;
+    for (std::size_t i = 0; i < store_.size(); ++i)
+      if (in_use(store_[i], need_att)) scratch_.data()[k++] = store_[i].f;
+    *f_nT = median(k);
+  }
+
+  // Coverage of the raw reading directions (before any fit).
+  Scalar raw_coverage(bool need_att) const noexcept {
+    CoverageGrid grid;
+    for (std::size_t i = 0; i < store_.size(); ++i)
+      if (in_use(store_[i], need_att)) grid.add(store_[i].raw());
+    return grid.fraction<Scalar>();
+  }
+
+  // Direction of the mean of R^T Rm^T h_s under a model (start of h_n from a prior).
+  Vec3<Scalar> mean_direction(const SensorModel<Scalar>& model) const noexcept {
+    const Mat3<Scalar> rmt = model.rm_matrix().transpose();
+    Vec3<Scalar> sum = Vec3<Scalar>::Zero();
+    for (std::size_t i = 0; i < store_.size(); ++i) {
+      if (!detail::usable(store_[i])) continue;
+      sum += store_[i].r_bn().transpose() * (rmt * (model.w * (store_[i].raw() - model.o)));
+    }
+    return sum.squaredNorm() > Scalar(0) ? Vec3<Scalar>(sum.normalized()) : Vec3<Scalar>::UnitY();
+  }
+
+  // 1.4826 MAD of |W(m - o)| - F over the samples in use (0 if none).
+  Scalar robust_intensity_scale(const Mat3<Scalar>& w, const Vec3<Scalar>& o,
+                                bool need_att) noexcept {
+    if (!scratch_.ensure(store_.size())) return Scalar(0);
+    std::size_t k = 0;
+    for (std::size_t i = 0; i < store_.size(); ++i) {
+      const StoredSample<Scalar>& s = store_[i];
+      if (in_use(s, need_att)) scratch_.data()[k++] = (w * (s.raw() - o)).norm() - s.f;
+    }
+    if (k == 0) return Scalar(0);
+    const Scalar med = median(k);
+    for (std::size_t i = 0; i < k; ++i)
+      scratch_.data()[i] = std::abs(scratch_.data()[i] - med);
+    return Scalar(1.4826) * median(k);
+  }
+
+  // Magnetometer noise from the intensity residuals of a model (the intensity carries the
+  // magnetometer noise only): ML scale with the parameter count removed; tails against the MAD.
+  void intensity_noise(const SensorModel<Scalar>& model, bool need_att, Scalar given_nT,
+                       BatchResult<Scalar>* res) noexcept {
+    Scalar sse{0};
+    std::size_t n = 0;
+    for (std::size_t i = 0; i < store_.size(); ++i) {
+      const StoredSample<Scalar>& s = store_[i];
+      if (!in_use(s, need_att)) continue;
+      const Scalar r = (model.w * (s.raw() - model.o)).norm() - s.f;
+      sse += r * r;
+      ++n;
+    }
+    const Scalar robust = robust_intensity_scale(model.w, model.o, need_att);
+    const Scalar dof = static_cast<Scalar>(n > 9 ? n - 9 : 1);
+    const Scalar ml = std::sqrt(sse / dof);
+    const Scalar rms = std::sqrt(sse / static_cast<Scalar>(n > 0 ? n : 1));
+    res->quality.tail_ratio = robust > Scalar(0) ? rms / robust : Scalar(0);
+    res->evidence.tail_ratio = res->quality.tail_ratio;
+    res->noise.estimated = cfg_.estimate_noise;
+    res->noise.mag_nT = cfg_.estimate_noise ? ml : given_nT;
+    res->noise.mag_sigma_nT = cfg_.estimate_noise
+                                  ? ml / std::sqrt(Scalar(2) * static_cast<Scalar>(n > 0 ? n : 1))
+                                  : Scalar(0);
+    res->quality.chi2_per_dof = given_nT > Scalar(0) ? (ml * ml) / (given_nT * given_nT) : 0;
+    res->evidence.chi2_per_dof = res->quality.chi2_per_dof;
+    res->evidence.noise_nT = res->noise.mag_nT;
+  }
+
+  // Attitude noise of a two-step result from the residual across h_n: E|r_perp|^2 = 2 sm^2 +
+  // 2 sa^2 F^2 (isotropic attitude noise, two directions across the field).
+  void attitude_noise(BatchResult<Scalar>* res) const noexcept {
+    if (!res->has_h_n) return;
+    const Mat3<Scalar> rmt = res->model.rm_matrix().transpose();
+    const Vec3<Scalar> dir = res->h_n_nT.normalized();
+    Scalar ss{0}, f2{0};
+    std::size_t n = 0;
+    for (std::size_t i = 0; i < store_.size(); ++i) {
+      const StoredSample<Scalar>& s = store_[i];
+      if (!detail::usable(s)) continue;
+      const Vec3<Scalar> e =
+          s.r_bn().transpose() * (rmt * (res->model.w * (s.raw() - res->model.o))) - s.f * dir;
+      const Vec3<Scalar> perp = e - dir * dir.dot(e);
+      ss += perp.squaredNorm();
+      f2 += s.f * s.f;
+      ++n;
+    }
+    if (n == 0) return;
+    const Scalar nn = static_cast<Scalar>(n);
+    const Scalar sm2 = res->noise.mag_nT * res->noise.mag_nT;
+    const Scalar sa2 = std::max((ss / nn / Scalar(2) - sm2) / (f2 / nn), Scalar(0));
+    res->noise.has_attitude = true;
+    res->noise.attitude_deg =
+        cfg_.estimate_noise ? rad_to_deg(std::sqrt(sa2)) : cfg_.attitude_noise_deg;
+    res->noise.attitude_sigma_deg =
+        cfg_.estimate_noise ? res->noise.attitude_deg / std::sqrt(Scalar(2) * nn) : Scalar(0);
+  }
+
   EllipsoidSolution<Scalar> robust_ellipsoid(const Normalization<Scalar>& norm, bool need_att,
                                              std::size_t* outliers) noexcept {
     EllipsoidSolution<Scalar> ell;
     *outliers = 0;
+    if (!scratch_.ensure(store_.size())) return ell;
     for (int pass = 0; pass < cfg_.outlier_max_passes; ++pass) {
       EllipsoidFit<Scalar> fit;
       fit.set_normalization(norm);
@@ -351,14 +492,15 @@ class BatchCalibrator {
       for (std::size_t i = 0; i < store_.size(); ++i) {
         const StoredSample<Scalar>& s = store_[i];
         if (!in_use(s, need_att)) continue;
-        scratch_[k++] = (ell.w * (s.raw() - ell.o)).norm() - s.f;
+        scratch_.data()[k++] = (ell.w * (s.raw() - ell.o)).norm() - s.f;
       }
       if (k == 0) return ell;
       const Scalar med = median(k);
       for (std::size_t i = 0; i < k; ++i)
-        scratch_[i] = std::abs(scratch_[i] - med);
+        scratch_.data()[i] = std::abs(scratch_.data()[i] - med);
       const Scalar mad = median(k);
-      const Scalar thr = std::max(cfg_.outlier_k * Scalar(1.4826) * mad, cfg_.outlier_floor_nT);
+      // A relative floor (1e-6 F): never reject residuals at the level of rounding.
+      const Scalar thr = std::max(cfg_.outlier_k * Scalar(1.4826) * mad, Scalar(1e-6) * norm.scale);
       bool changed = false;
       std::size_t count = 0;
       for (std::size_t i = 0; i < store_.size(); ++i) {
@@ -403,11 +545,11 @@ class BatchCalibrator {
     return std::sqrt(std::max(cov.trace(), Scalar(0)));
   }
 
-  Scalar intensity_rms(const Mat3<Scalar>& w, const Vec3<Scalar>& o) const noexcept {
+  Scalar intensity_rms(const Mat3<Scalar>& w, const Vec3<Scalar>& o, bool need_att) const noexcept {
     Scalar sse{0};
     std::size_t n = 0;
     for (std::size_t i = 0; i < store_.size(); ++i) {
-      if (store_[i].outlier()) continue;
+      if (!in_use(store_[i], need_att)) continue;
       const Scalar r = (w * (store_[i].raw() - o)).norm() - store_[i].f;
       sse += r * r;
       ++n;
@@ -415,10 +557,15 @@ class BatchCalibrator {
     return std::sqrt(sse / static_cast<Scalar>(n > 0 ? n : 1));
   }
 
-  // Quality figures of the final model and the acceptance thresholds.
-  void finish(BatchResult<Scalar>* res, Verdict v) const noexcept {
-    res->quality.coverage = coverage(res->model);
-    res->quality.intensity_rms_nT = intensity_rms(res->model.w, res->model.o);
+  // Quality figures of the final model and the verdict of the acceptance policy.
+  void finish(BatchResult<Scalar>* res) const noexcept {
+    AcceptanceEvidence<Scalar>& ev = res->evidence;
+    const bool need_att = res->method != BatchMethod::kEllipsoidOnly;
+    if (res->has_model) {
+      res->quality.coverage = coverage(res->model);
+      ev.coverage = res->quality.coverage;
+    }
+    res->quality.intensity_rms_nT = intensity_rms(res->model.w, res->model.o, need_att);
     if (res->has_h_n) {
       const Mat3<Scalar> rmt = res->model.rm_matrix().transpose();
       const Vec3<Scalar> dir = res->h_n_nT.normalized();
@@ -434,22 +581,15 @@ class BatchCalibrator {
       }
       res->quality.enu_rms_nT = (sse / static_cast<Scalar>(n > 0 ? n : 1)).cwiseSqrt();
     }
-    const bool scale_ok = (res->li.ks.array() >= cfg_.min_scale).all() &&
-                          (res->li.ks.array() <= cfg_.max_scale).all();
-    if (v == Verdict::kOk && res->quality.coverage < cfg_.min_coverage)
-      v = Verdict::kInsufficientCoverage;
-    if (v == Verdict::kOk &&
-        (!scale_ok || !(res->quality.intensity_rms_nT <= cfg_.max_intensity_rms_nT))) {
-      v = Verdict::kFieldMismatch;
-    }
-    if (v == Verdict::kOk && !(res->model.w.allFinite() && res->model.o.allFinite()))
-      v = Verdict::kIllConditioned;
-    res->verdict = v;
+    ev.min_scale = res->li.ks.minCoeff();
+    ev.max_scale = res->li.ks.maxCoeff();
+    if (!res->has_model) ev.ill_conditioned = true;
+    res->verdict = judge(ev, cfg_.limits);
   }
 
   BatchConfig<Scalar> cfg_;
   SampleStore<Scalar, Capacity> store_{};
-  std::array<Scalar, Capacity> scratch_{};
+  detail::StoreBuffer<Scalar, Capacity> scratch_{};
   BatchCounts counts_{};
 };
 

@@ -29,6 +29,7 @@
 #include <cstdint>
 
 #include "magvec/core/batch_calibrator.hpp"
+#include "magvec/core/coverage.hpp"
 #include "magvec/core/sensor_loop.hpp"
 #include "magvec/core/types.hpp"
 
@@ -53,31 +54,12 @@ struct BatchLiCounts {
 
 namespace batch_li_detail {
 
-// Cell (0..31) of BatchCalibrator's equal-area grid for a unit vector.
-template <typename Scalar>
-unsigned coverage_cell(const Vec3<Scalar>& d) noexcept {
-  constexpr int kBands = 4, kSectors = 8;
-  int band = static_cast<int>((d(2) + Scalar(1)) * Scalar(0.5) * Scalar(kBands));
-  band = std::clamp(band, 0, kBands - 1);
-  const Scalar az = std::atan2(d(1), d(0)) + kPi<Scalar>;
-  int sector = static_cast<int>(az / (Scalar(2) * kPi<Scalar>)*Scalar(kSectors));
-  sector = std::clamp(sector, 0, kSectors - 1);
-  return static_cast<unsigned>(band * kSectors + sector);
-}
-
 // Rotation angle between two rotation matrices [rad], robust near 0.
 template <typename Scalar>
 Scalar rotation_angle(const Mat3<Scalar>& a, const Mat3<Scalar>& b) noexcept {
   const Scalar c = std::clamp((Scalar(a.cwiseProduct(b).sum()) - Scalar(1)) * Scalar(0.5),
                               Scalar(-1), Scalar(1));
   return std::acos(c);
-}
-
-inline int popcount32(std::uint32_t x) noexcept {
-  int n = 0;
-  for (; x != 0U; x &= x - 1U)
-    ++n;
-  return n;
 }
 
 }  // namespace batch_li_detail
@@ -106,7 +88,7 @@ class BatchLiCalibrator {
   void begin() noexcept {
     batch_.reset();
     counts_ = BatchLiCounts{};
-    cells_ = 0;
+    cells_.clear();
     have_last_ = false;
     result_ = BatchResult<Scalar>{};
     solved_ = false;
@@ -147,7 +129,7 @@ class BatchLiCalibrator {
     last_dir_ = dir;
     last_has_att_ = r_bn != nullptr;
     if (last_has_att_) last_r_bn_ = *r_bn;
-    cells_ |= 1U << batch_li_detail::coverage_cell(dir);
+    cells_.add(dir);
     return CalibratorAdd::kUsed;
   }
 
@@ -174,9 +156,7 @@ class BatchLiCalibrator {
 
   // --- diagnostics ------------------------------------------------------------------------------
   // Fraction of the 32 direction cells hit by the kept raw field directions.
-  Scalar coverage() const noexcept {
-    return static_cast<Scalar>(batch_li_detail::popcount32(cells_)) / Scalar(32);
-  }
+  Scalar coverage() const noexcept { return cells_.fraction<Scalar>(); }
   std::size_t stored() const noexcept { return batch_.store().size(); }
   const BatchLiCounts& counts() const noexcept { return counts_; }
   bool solved() const noexcept { return solved_; }
@@ -185,14 +165,14 @@ class BatchLiCalibrator {
 
  private:
   std::size_t min_samples() const noexcept {
-    return std::clamp<std::size_t>(cfg_.min_samples, cfg_.batch.min_samples, Capacity);
+    return std::clamp<std::size_t>(cfg_.min_samples, cfg_.batch.limits.min_samples, Capacity);
   }
 
   Config cfg_;
   BatchCalibrator<Scalar, Capacity> batch_;
   BatchLiCounts counts_{};
   BatchResult<Scalar> result_{};
-  std::uint32_t cells_{0};
+  CoverageGrid cells_{};
   bool have_last_{false};
   bool last_has_att_{false};
   bool solved_{false};

@@ -53,30 +53,64 @@ enum class OneStepStatus : std::uint8_t {
   kNotConverged,
 };
 
+// A prior calibration (its parameters and 1-sigmas) for the regularised (MAP) fit: the data update
+// what they determine, the prior holds the rest. A sigma of 0 or non-finite: no prior on it.
+template <typename Scalar>
+struct OneStepPrior {
+  LiParams<Scalar> mean{};
+  LiSigmas<Scalar> sigma{};
+};
+
 template <typename Scalar>
 struct OneStepOptions {
-  Scalar mag_noise_nT = Scalar(0.3);
+  Scalar mag_noise_nT = Scalar(0.3);  // start value when estimate_noise
   Scalar attitude_noise_rad = deg_to_rad(Scalar(0.015));
   AttitudeNoiseModel attitude_model = AttitudeNoiseModel::kLiEuler;
-  bool fix_heading = false;  // hold am at the start value (ERRATA 000-4)
-  bool scale_sigma_by_residual = true;
+  // Estimate both noise figures from the residuals (variance components, docs/equations.md
+  // "Noise from the data"); the values above are then only the start.
+  bool estimate_noise = false;
+  bool fix_heading = false;  // hold am at the start value (misalignment about the vertical)
+  bool scale_sigma_by_residual = true;  // given noise: scale the covariance by chi^2/dof
   Scalar max_rm_sigma_rad = deg_to_rad(Scalar(0.5));
+  // A parameter is determined when its 1-sigma is below this fraction of its natural size (scale
+  // 1, angle 1 rad, offset F).
+  Scalar max_relative_sigma = Scalar(0.02);
   Scalar min_rcond = std::sqrt(std::numeric_limits<Scalar>::epsilon()) * Scalar(1e-2);
-  int max_iterations = 30;
+  int max_iterations = 50;    // damped steps per noise round
+  int max_noise_rounds = 10;  // variance-component rounds
+  const OneStepPrior<Scalar>* prior = nullptr;
 };
 
 template <typename Scalar>
 struct OneStepSolution {
   OneStepStatus status = OneStepStatus::kTooFewSamples;
+  bool converged = false;
   LiParams<Scalar> li{};
   LiSigmas<Scalar> sigma{};
   Vec3<Scalar> h_n = Vec3<Scalar>::Zero();        // F_mean * d [nT]
   Vec3<Scalar> h_n_sigma = Vec3<Scalar>::Zero();  // [nT]
   Scalar chi2_per_dof{0};
+  Scalar cost{0};  // chi^2 (+ prior term) at the solution, with the final noise figures
   Scalar rcond{0};
   std::size_t samples{0};
   int iterations{0};
   bool heading_fixed = false;
+  // Noise figures in use at the solution (estimated, or the given ones) and, when estimated,
+  // their 1-sigma.
+  bool noise_estimated = false;
+  Scalar mag_noise_nT{0};
+  Scalar mag_noise_sigma_nT{0};
+  Scalar attitude_noise_rad{0};
+  Scalar attitude_noise_sigma_rad{0};
+  // RMS of the normalised residuals over their median-based scale (1 for Gaussian residuals).
+  Scalar tail_ratio{0};
+  // Bit k (parameter index kIdx*): its 1-sigma exceeds the "determined" limit.
+  std::uint32_t undetermined{0};
+  // With a prior: bit k of `updated` when the data determine parameter k (posterior 1-sigma below
+  // half the prior's); bit k of `moved` when it left the prior mean by more than 2 posterior
+  // sigmas.
+  std::uint32_t updated{0};
+  std::uint32_t moved{0};
 };
 
 template <typename Scalar>
@@ -89,10 +123,36 @@ class OneStepFit {
   static constexpr int kIdxRm = 9;
   static constexpr int kIdxDir = 12;
   static_assert(kIdxDir + 2 == kParams, "14 parameters: Ks, O, Kof, Rm, direction of h_n");
+  static constexpr int kTailBins = 128;  // histogram of |r_w|^2 over [0, 32) for the median
   using MatP = Mat<Scalar, kParams, kParams>;
   using VecP = Vec<Scalar, kParams>;
 
-  // start: two-step Li parameters (Kof in nT); d_start: direction of h_n (any length > 0).
+  // Parameter names for reports, indexed like the parameter vector.
+  static const char* param_name(int k) noexcept {
+    static constexpr const char* kNames[kParams] = {
+        "ks_x",  "ks_y",  "ks_z",     "O1",      "O2",       "O3",        "Kof_x",
+        "Kof_y", "Kof_z", "Rm_alpha", "Rm_beta", "Rm_gamma", "h_n_dir_1", "h_n_dir_2"};
+    return k >= 0 && k < kParams ? kNames[k] : "?";
+  }
+
+  struct Params {
+    Vec3<Scalar> ks, o_rad, u, rm, d;  // u: Kof in normalised units; d: unit direction of h_n
+  };
+
+  // Sums of one pass over the samples for given parameters and noise (normalised units).
+  struct PassSums {
+    MatP n = MatP::Zero();  // J^T Sigma^-1 J
+    VecP g = VecP::Zero();  // J^T Sigma^-1 r
+    Scalar chi2{0};
+    Scalar fsum{0};
+    std::size_t count{0};
+    // Variance components: q_k = r^T S^-1 V_k S^-1 r and t_k = tr(S^-1 V_k), k = magnetometer
+    // (V = P P^T) and attitude (V = C C^T).
+    Scalar q_mag{0}, t_mag{0}, q_att{0}, t_att{0};
+    std::array<std::uint32_t, kTailBins> tail{};
+  };
+
+  // start: two-step (or prior) Li parameters (Kof in nT); d_start: direction of h_n (any length).
   template <std::size_t Capacity>
   static OneStepSolution<Scalar> solve(const SampleStore<Scalar, Capacity>& store,
                                        const Normalization<Scalar>& norm,
@@ -100,82 +160,75 @@ class OneStepFit {
                                        const OneStepOptions<Scalar>& opt) noexcept {
     OneStepSolution<Scalar> out;
     out.heading_fixed = opt.fix_heading;
-    Vec3<Scalar> ks = start.ks, o_rad = start.o_rad, u = norm.to_unit(start.kof), rm = start.rm_rad;
-    Vec3<Scalar> d = d_start.normalized();
-    const Scalar sm = opt.mag_noise_nT / norm.scale;
-    const Scalar sa2 = opt.attitude_noise_rad * opt.attitude_noise_rad;
-    const Scalar tol = detail::default_tolerance<Scalar>();
-    MatP n = MatP::Identity();
-    Vec3<Scalar> t1, t2;
-    Scalar chi2{0}, prev_chi2 = std::numeric_limits<Scalar>::infinity();
-    Scalar fsum{0};
-    std::size_t count = 0;
-    VecP last_step = VecP::Zero();
+    Params p{start.ks, start.o_rad, norm.to_unit(start.kof), start.rm_rad, d_start.normalized()};
+    // Noise in normalised units: sm per axis, sa per angle (rad).
+    const Scalar sm_floor = std::sqrt(std::numeric_limits<Scalar>::epsilon()) * Scalar(0.1);
+    Scalar sm = std::max(opt.mag_noise_nT / norm.scale, sm_floor);
+    Scalar sa = std::max(opt.attitude_noise_rad, sm * Scalar(1e-3));
+    PassSums sums;
     bool converged = false;
-    int it = 0;
-    for (; it < opt.max_iterations; ++it) {
-      tangent_basis(d, &t1, &t2);
-      VecP g;
-      pass(store, norm, ks, o_rad, u, rm, d, t1, t2, sm, sa2, opt.attitude_model, &n, &g, &chi2,
-           &fsum, &count);
-      if (count < 5) return out;
-      if (!(chi2 <= prev_chi2 * (Scalar(1) + Scalar(1e-6))) && it > 0 && last_step.norm() > tol) {
-        // The last step overshot: go back half of it and re-evaluate.
-        last_step *= Scalar(-0.5);
-        apply(last_step, &ks, &o_rad, &u, &rm, &d, t1, t2);
-        continue;
-      }
-      prev_chi2 = chi2;
-      MatP a = n;
-      if (opt.fix_heading) {
-        a.row(kIdxRm + kRmAlpha).setZero();
-        a.col(kIdxRm + kRmAlpha).setZero();
-        a(kIdxRm + kRmAlpha, kIdxRm + kRmAlpha) = Scalar(1);
-        g(kIdxRm + kRmAlpha) = Scalar(0);
-      }
-      const Eigen::LDLT<MatP> ldlt(a);
-      VecP step = -ldlt.solve(g);
-      if (ldlt.info() != Eigen::Success || !step.allFinite()) break;
-      if (step.template segment<3>(kIdxRm).norm() > Scalar(1)) break;  // degenerate direction
-      apply(step, &ks, &o_rad, &u, &rm, &d, t1, t2);
-      last_step = step;
-      // Converged when every change is tiny in absolute terms or against its own uncertainty.
-      bool small = true;
-      for (int k = 0; k < kParams; ++k) {
-        const Scalar sig = a(k, k) > Scalar(0) ? Scalar(1) / std::sqrt(a(k, k)) : Scalar(0);
-        if (std::abs(step(k)) > tol && std::abs(step(k)) > Scalar(1e-4) * sig) small = false;
-      }
-      if (small) {
-        converged = true;
-        ++it;
+    int total_it = 0;
+    const int rounds = opt.estimate_noise ? opt.max_noise_rounds : 1;
+    for (int round = 0; round < rounds; ++round) {
+      int it = 0;
+      converged = minimise(store, norm, opt, sm, sa, &p, &sums, &it);
+      total_it += it;
+      if (sums.count < 5) return out;
+      if (!opt.estimate_noise || !converged) break;
+      // Variance-component update (Foerstner): theta_k <- theta_k q_k / (t_k (1 - p/n_obs)).
+      const Scalar red =
+          Scalar(1) - Scalar(kParams) / (Scalar(3) * static_cast<Scalar>(sums.count));
+      const Scalar sm2 = sm * sm * sums.q_mag / std::max(sums.t_mag * red, Scalar(1e-30));
+      const Scalar sa2 = sa * sa * sums.q_att / std::max(sums.t_att * red, Scalar(1e-30));
+      const Scalar sm_new = std::max(std::sqrt(std::max(sm2, Scalar(0))), sm_floor);
+      const Scalar sa_new = std::max(std::sqrt(std::max(sa2, Scalar(0))), sm_new * Scalar(1e-3));
+      const Scalar change =
+          std::max(std::abs(sm_new / sm - Scalar(1)), std::abs(sa_new / sa - Scalar(1)));
+      sm = sm_new;
+      sa = sa_new;
+      if (change < Scalar(0.01)) {
+        sums = pass(store, norm, p, p, sm, sa * sa, opt.attitude_model);
         break;
       }
     }
-    out.iterations = it;
-    out.samples = count;
-    out.li.ks = ks;
-    out.li.o_rad = o_rad;
-    out.li.kof = norm.to_nt(u);
-    out.li.rm_rad = Vec3<Scalar>(wrap_pi(rm(0)), wrap_pi(rm(1)), wrap_pi(rm(2)));
-    const Scalar fmean = fsum / static_cast<Scalar>(count > 0 ? count : 1);
-    out.h_n = d * fmean;
+    out.converged = converged;
+    out.iterations = total_it;
+    out.samples = sums.count;
+    out.li.ks = p.ks;
+    out.li.o_rad = p.o_rad;
+    out.li.kof = norm.to_nt(p.u);
+    out.li.rm_rad = Vec3<Scalar>(wrap_pi(p.rm(0)), wrap_pi(p.rm(1)), wrap_pi(p.rm(2)));
+    const Scalar fmean = sums.fsum / static_cast<Scalar>(sums.count > 0 ? sums.count : 1);
+    out.h_n = p.d * fmean;
     const int active = opt.fix_heading ? kParams - 1 : kParams;
-    const Scalar dof = Scalar(3) * static_cast<Scalar>(count) - Scalar(active);
-    out.chi2_per_dof = dof > Scalar(0) ? chi2 / dof : Scalar(0);
+    const Scalar dof = Scalar(3) * static_cast<Scalar>(sums.count) - Scalar(active);
+    out.chi2_per_dof = dof > Scalar(0) ? sums.chi2 / dof : Scalar(0);
+    out.cost = sums.chi2 + prior_cost(opt.prior, norm, p);
     out.status = converged ? OneStepStatus::kOk : OneStepStatus::kNotConverged;
+    out.noise_estimated = opt.estimate_noise;
+    out.mag_noise_nT = sm * norm.scale;
+    out.attitude_noise_rad = sa;
+    if (opt.estimate_noise) {
+      // Var(theta_k) ~ 2 theta_k^2 / n_k, n_k = theta_k t_k the residual dof carried by component
+      // k.
+      const Scalar n_mag = std::max(sm * sm * sums.t_mag, Scalar(1));
+      const Scalar n_att = std::max(sa * sa * sums.t_att, Scalar(1));
+      out.mag_noise_sigma_nT = out.mag_noise_nT / std::sqrt(Scalar(2) * n_mag);
+      out.attitude_noise_sigma_rad = sa / std::sqrt(Scalar(2) * n_att);
+    }
+    out.tail_ratio = tail_ratio(sums);
 
     // Covariance and observability on the active parameters.
-    MatP a = n;
-    if (opt.fix_heading) {
-      a.row(kIdxRm + kRmAlpha).setZero();
-      a.col(kIdxRm + kRmAlpha).setZero();
-      a(kIdxRm + kRmAlpha, kIdxRm + kRmAlpha) = Scalar(1);
-    }
+    MatP a = sums.n;
+    add_prior_information(opt.prior, norm, &a);
+    if (opt.fix_heading) hold(kIdxRm + kRmAlpha, &a, nullptr);
     VecP weakest;
     out.rcond = detail::scaled_rcond<Scalar, kParams>(a, &weakest);
-    const Scalar factor = opt.scale_sigma_by_residual ? out.chi2_per_dof : Scalar(1);
+    const bool given = !opt.estimate_noise;
+    const Scalar factor = given && opt.scale_sigma_by_residual ? out.chi2_per_dof : Scalar(1);
     const Eigen::LDLT<MatP> ldlt(a);
-    MatP cov = ldlt.solve(MatP::Identity()) * factor;
+    const MatP cov_model = ldlt.solve(MatP::Identity());
+    MatP cov = cov_model * factor;
     if (opt.fix_heading) cov(kIdxRm + kRmAlpha, kIdxRm + kRmAlpha) = Scalar(0);
     VecP sd;
     for (int k = 0; k < kParams; ++k)
@@ -185,13 +238,33 @@ class OneStepFit {
     out.sigma.kof = sd.template segment<3>(kIdxKof) * norm.scale;
     out.sigma.rm_rad = sd.template segment<3>(kIdxRm);
     Mat<Scalar, 3, 2> tb;
+    Vec3<Scalar> t1, t2;
+    tangent_basis(p.d, &t1, &t2);
     tb << t1, t2;
     const Mat3<Scalar> cov_h =
         tb * cov.template block<2, 2>(kIdxDir, kIdxDir) * tb.transpose() * (fmean * fmean);
     out.h_n_sigma = cov_h.diagonal().cwiseMax(Scalar(0)).cwiseSqrt();
 
+    // What the data determine: 1-sigma against the parameter's natural size.
+    for (int k = 0; k < kParams; ++k) {
+      if (opt.fix_heading && k == kIdxRm + kRmAlpha) continue;
+      const Scalar limit =
+          (k >= kIdxRm && k < kIdxRm + 3) ? opt.max_rm_sigma_rad : opt.max_relative_sigma;
+      if (!(sd(k) <= limit)) out.undetermined |= 1U << static_cast<unsigned>(k);
+    }
+    if (opt.prior != nullptr) {
+      const VecP ps = prior_sigmas(*opt.prior, norm);
+      const VecP pm = prior_means(*opt.prior, norm);
+      const VecP pv = vector_of(p);
+      for (int k = 0; k < kIdxDir; ++k) {
+        if (!(ps(k) > Scalar(0) && std::isfinite(ps(k)))) continue;
+        const auto bit = 1U << static_cast<unsigned>(k);
+        if (sd(k) < Scalar(0.5) * ps(k)) out.updated |= bit;
+        if (std::abs(pv(k) - pm(k)) > Scalar(2) * std::max(sd(k), Scalar(1e-30))) out.moved |= bit;
+      }
+    }
+
     // Unit-free predicted SD of the angles (noise model only) decides observability.
-    const MatP cov_model = ldlt.solve(MatP::Identity());
     Scalar worst_rm{0};
     for (int k = opt.fix_heading ? 1 : 0; k < 3; ++k) {
       worst_rm =
@@ -200,25 +273,129 @@ class OneStepFit {
     const bool rm_weak = weakest.template segment<3>(kIdxRm).squaredNorm() > Scalar(0.5);
     if (!(out.rcond >= opt.min_rcond) || !ldlt.isPositive() || ldlt.info() != Eigen::Success) {
       out.status = rm_weak ? OneStepStatus::kUnobservableHeading : OneStepStatus::kIllConditioned;
-    } else if (!(worst_rm <= opt.max_rm_sigma_rad)) {
+    } else if (!(worst_rm <= opt.max_rm_sigma_rad) && opt.prior == nullptr) {
       out.status = OneStepStatus::kUnobservableHeading;
     }
     return out;
   }
 
-  // Intensity and per-sample covariance-weighted pass; public for benchmarks and tests.
+  // Iteratively reweighted, damped Gauss-Newton at fixed noise. The residual covariances depend
+  // on the parameters (P = R^T Rm^T W, h_n), so they are frozen for a Levenberg-Marquardt run and
+  // re-evaluated after it, until a run starts at its own optimum. Within a run a step is taken
+  // only when the cost (chi^2 with the frozen weights, plus the prior term) falls; otherwise the
+  // damping grows and the step is recomputed from the same point. A run has converged when every
+  // step component is below 1e-4 of its 1-sigma (or the numerical tolerance), or when no step
+  // lowers the cost and the Gauss-Newton predicted decrease is below 1e-6 in chi^2 units: both
+  // criteria are relative to the noise. On return *sums holds the pass at *p (weights at *p).
   template <std::size_t Capacity>
-  static void pass(const SampleStore<Scalar, Capacity>& store, const Normalization<Scalar>& norm,
-                   const Vec3<Scalar>& ks, const Vec3<Scalar>& o_rad, const Vec3<Scalar>& u,
-                   const Vec3<Scalar>& rm_ang, const Vec3<Scalar>& d, const Vec3<Scalar>& t1,
-                   const Vec3<Scalar>& t2, Scalar sm, Scalar sa2, AttitudeNoiseModel model, MatP* n,
-                   VecP* g, Scalar* chi2, Scalar* fsum, std::size_t* count) noexcept {
+  static bool minimise(const SampleStore<Scalar, Capacity>& store,
+                       const Normalization<Scalar>& norm, const OneStepOptions<Scalar>& opt,
+                       Scalar sm, Scalar sa, Params* p, PassSums* sums, int* iterations) noexcept {
+    constexpr int kMaxReweights = 20;
+    bool converged = false;
+    *iterations = 0;
+    for (int rw = 0; rw < kMaxReweights; ++rw) {
+      const Params weights = *p;
+      bool settled = false;
+      int it = 0;
+      converged = run_lm(store, norm, opt, sm, sa, weights, p, sums, &it, &settled);
+      *iterations += it;
+      if (!converged || settled) break;
+      if (rw + 1 == kMaxReweights) converged = false;
+    }
+    *sums = pass(store, norm, *p, *p, sm, sa * sa, opt.attitude_model);
+    return converged;
+  }
+
+  // One Levenberg-Marquardt run with the weights frozen at `weights`. *settled: the first step
+  // was already negligible (the run started at its optimum).
+  template <std::size_t Capacity>
+  static bool run_lm(const SampleStore<Scalar, Capacity>& store, const Normalization<Scalar>& norm,
+                     const OneStepOptions<Scalar>& opt, Scalar sm, Scalar sa, const Params& weights,
+                     Params* p, PassSums* sums, int* iterations, bool* settled) noexcept {
+    const Scalar sa2 = sa * sa;
+    const Scalar tol = detail::default_tolerance<Scalar>();
+    *sums = pass(store, norm, *p, weights, sm, sa2, opt.attitude_model);
+    *settled = false;
+    if (sums->count < 5) return false;
+    Scalar cost = sums->chi2 + prior_cost(opt.prior, norm, *p);
+    Scalar lambda = Scalar(1e-4);
+    const Scalar kMaxLambda = Scalar(1e10);
+    int it = 0;
+    bool converged = false;
+    for (; it < opt.max_iterations && !converged; ++it) {
+      MatP a = sums->n;
+      VecP g = sums->g;
+      add_prior_information(opt.prior, norm, &a);
+      add_prior_gradient(opt.prior, norm, *p, &g);
+      if (opt.fix_heading) hold(kIdxRm + kRmAlpha, &a, &g);
+      // Gauss-Newton predicted decrease g^T A^-1 g (chi^2 units), for the stall test.
+      const Eigen::LDLT<MatP> gn(a);
+      const VecP gn_step = -gn.solve(g);
+      const Scalar predicted =
+          gn.info() == Eigen::Success && gn_step.allFinite() ? -g.dot(gn_step) : Scalar(0);
+      bool accepted = false;
+      while (lambda <= kMaxLambda) {
+        MatP b = a;
+        for (int k = 0; k < kParams; ++k)
+          b(k, k) += lambda * std::max(a(k, k), Scalar(1e-30));
+        const Eigen::LDLT<MatP> ldlt(b);
+        const VecP step = -ldlt.solve(g);
+        if (ldlt.info() != Eigen::Success || !step.allFinite() ||
+            step.template segment<3>(kIdxRm).norm() > Scalar(1)) {
+          lambda *= Scalar(10);
+          continue;
+        }
+        Params cand = *p;
+        apply(step, &cand);
+        PassSums cs = pass(store, norm, cand, weights, sm, sa2, opt.attitude_model);
+        const Scalar ccost = cs.chi2 + prior_cost(opt.prior, norm, cand);
+        if (cs.count == sums->count && ccost <= cost) {
+          bool small = true;
+          for (int k = 0; k < kParams; ++k) {
+            const Scalar sig = a(k, k) > Scalar(0) ? Scalar(1) / std::sqrt(a(k, k)) : Scalar(0);
+            if (std::abs(step(k)) > tol && std::abs(step(k)) > Scalar(1e-4) * sig) small = false;
+          }
+          if (small && it == 0) *settled = true;
+          *p = cand;
+          *sums = cs;
+          cost = ccost;
+          lambda = std::max(lambda * Scalar(0.1), Scalar(1e-12));
+          accepted = true;
+          converged = small;
+          break;
+        }
+        lambda *= Scalar(10);
+      }
+      if (!accepted) {
+        // No step lowers the cost: a minimum to numerical precision if Gauss-Newton predicts
+        // (almost) nothing more, else a failure.
+        converged = predicted <= Scalar(1e-6) + Scalar(1e-9) * cost;
+        if (converged && it == 0) *settled = true;
+        ++it;
+        break;
+      }
+    }
+    *iterations = it;
+    return converged;
+  }
+
+  // One pass over the samples: normal matrix, gradient, chi^2, variance-component sums and the
+  // histogram of |r_w|^2. Public for benchmarks and tests.
+  template <std::size_t Capacity>
+  static PassSums pass(const SampleStore<Scalar, Capacity>& store,
+                       const Normalization<Scalar>& norm, const Params& prm, const Params& wprm,
+                       Scalar sm, Scalar sa2, AttitudeNoiseModel model) noexcept {
     using std::cos;
     using std::sin;
+    PassSums out;
+    const Vec3<Scalar>&ks = prm.ks, &o_rad = prm.o_rad, &u = prm.u, &d = prm.d;
+    Vec3<Scalar> t1, t2;
+    tangent_basis(d, &t1, &t2);
     const Mat3<Scalar> ko = li_ko(o_rad);
     const Mat3<Scalar> w = (ks.asDiagonal() * ko).inverse();
     std::array<Mat3<Scalar>, 3> drm;
-    const Mat3<Scalar> rmt = li_rm_with_derivatives(rm_ang, &drm).transpose();
+    const Mat3<Scalar> rmt = li_rm_with_derivatives(prm.rm, &drm).transpose();
     std::array<Mat3<Scalar>, 3> drmt;
     for (std::size_t k = 0; k < 3; ++k)
       drmt[k] = drm[k].transpose();
@@ -227,57 +404,91 @@ class OneStepFit {
     const Vec3<Scalar> dko2(-sin(o_rad(1)) * sin(o_rad(2)), -sin(o_rad(1)) * cos(o_rad(2)),
                             cos(o_rad(1)));
     const Vec3<Scalar> dko3(cos(o_rad(1)) * cos(o_rad(2)), -cos(o_rad(1)) * sin(o_rad(2)), 0);
-    n->setZero();
-    g->setZero();
-    *chi2 = Scalar(0);
-    *fsum = Scalar(0);
-    *count = 0;
+    // Weights: the covariance at wprm (frozen during a damped run).
+    const Mat3<Scalar> w_cov =
+        li_rm(wprm.rm).transpose() * (wprm.ks.asDiagonal() * li_ko(wprm.o_rad)).inverse();
+    const Scalar sm2 = sm * sm;
     for (std::size_t i = 0; i < store.size(); ++i) {
       const StoredSample<Scalar>& s = store[i];
       if (!detail::usable(s)) continue;
       const Mat3<Scalar> r = s.r_bn();
       const Mat3<Scalar> mt = r.transpose() * rmt;  // R^T Rm^T
-      const Mat3<Scalar> p = mt * w;
+      const Mat3<Scalar> pm = mt * w;
+      const Mat3<Scalar> pw = r.transpose() * w_cov;  // P for the weights
       const Vec3<Scalar> hs = w * (norm.to_unit(s.raw()) - u);
       const Scalar fn = s.f / norm.scale;
       const Vec3<Scalar> hn = fn * d;
+      const Vec3<Scalar> hw = fn * wprm.d;
       const Vec3<Scalar> res = mt * hs - hn;
       Mat<Scalar, 3, kParams> j;
       for (int k = 0; k < 3; ++k)
-        j.col(kIdxKs + k) = -p.col(k) * ko.row(k).dot(hs);
-      j.col(kIdxO + 0) = -p.col(2) * (ks(2) * dko1.dot(hs));
-      j.col(kIdxO + 1) = -p.col(1) * (ks(1) * dko2.dot(hs));
-      j.col(kIdxO + 2) = -p.col(1) * (ks(1) * dko3.dot(hs));
-      j.template block<3, 3>(0, kIdxKof) = -p;
+        j.col(kIdxKs + k) = -pm.col(k) * ko.row(k).dot(hs);
+      j.col(kIdxO + 0) = -pm.col(2) * (ks(2) * dko1.dot(hs));
+      j.col(kIdxO + 1) = -pm.col(1) * (ks(1) * dko2.dot(hs));
+      j.col(kIdxO + 2) = -pm.col(1) * (ks(1) * dko3.dot(hs));
+      j.template block<3, 3>(0, kIdxKof) = -pm;
       for (int k = 0; k < 3; ++k)
         j.col(kIdxRm + k) = r.transpose() * (drmt[static_cast<std::size_t>(k)] * hs);
       j.col(kIdxDir) = -fn * t1;
       j.col(kIdxDir + 1) = -fn * t2;
-      // Residual covariance.
-      Mat3<Scalar> cov = (sm * sm) * (p * p.transpose());
+      // Residual covariance: sm^2 P P^T + sa^2 C C^T (C: the attitude-noise directions).
+      Mat3<Scalar> c;
       if (model == AttitudeNoiseModel::kLiEuler) {
         const Scalar hx = r(1, 1), hy = -r(1, 0);
         const Scalar hl = std::sqrt(hx * hx + hy * hy);
         const Vec3<Scalar> a1 =
             hl > Scalar(0) ? Vec3<Scalar>(hx / hl, hy / hl, 0) : Vec3<Scalar>::UnitX();
-        const Vec3<Scalar> c0 = Vec3<Scalar>::UnitZ().cross(hn);
-        const Vec3<Scalar> c1 = a1.cross(hn);
-        const Vec3<Scalar> c2 = Vec3<Scalar>(r.row(1).transpose()).cross(hn);
-        cov += sa2 * (c0 * c0.transpose() + c1 * c1.transpose() + c2 * c2.transpose());
+        c.col(0) = Vec3<Scalar>::UnitZ().cross(hw);
+        c.col(1) = a1.cross(hw);
+        c.col(2) = Vec3<Scalar>(r.row(1).transpose()).cross(hw);
       } else {
-        cov += sa2 * (hn.squaredNorm() * Mat3<Scalar>::Identity() - hn * hn.transpose());
+        c << Scalar(0), -hw(2), hw(1), hw(2), Scalar(0), -hw(0), -hw(1), hw(0), Scalar(0);
       }
+      const Mat3<Scalar> cov = sm2 * (pw * pw.transpose()) + sa2 * (c * c.transpose());
       const Eigen::LLT<Mat3<Scalar>> llt(cov);
       if (llt.info() != Eigen::Success) continue;
       const Mat<Scalar, 3, kParams> jw = llt.matrixL().solve(j);
       const Vec3<Scalar> rw = llt.matrixL().solve(res);
-      n->template selfadjointView<Eigen::Upper>().rankUpdate(jw.transpose());
-      *g += jw.transpose() * rw;
-      *chi2 += rw.squaredNorm();
-      *fsum += s.f;
-      ++*count;
+      out.n.template selfadjointView<Eigen::Upper>().rankUpdate(jw.transpose());
+      out.g += jw.transpose() * rw;
+      const Scalar r2 = rw.squaredNorm();
+      out.chi2 += r2;
+      out.fsum += s.f;
+      ++out.count;
+      // Variance components: S^-1 r = L^-T r_w; tr(S^-1 V) = |L^-1 V^(1/2)|_F^2.
+      const Vec3<Scalar> sr = llt.matrixU().solve(rw);
+      out.q_mag += (pw.transpose() * sr).squaredNorm();
+      out.q_att += (c.transpose() * sr).squaredNorm();
+      out.t_mag += Mat3<Scalar>(llt.matrixL().solve(pw)).squaredNorm();
+      out.t_att += Mat3<Scalar>(llt.matrixL().solve(c)).squaredNorm();
+      const Scalar bin = r2 * Scalar(kTailBins) / Scalar(32);
+      const int b = bin < Scalar(kTailBins - 1) ? static_cast<int>(bin) : kTailBins - 1;
+      ++out.tail[static_cast<std::size_t>(b)];
     }
-    *n = n->template selfadjointView<Eigen::Upper>();
+    out.n = out.n.template selfadjointView<Eigen::Upper>();
+    return out;
+  }
+
+  // RMS of the normalised residual vectors over the scale their median implies (chi^2 with 3
+  // degrees of freedom: mean 3, median 2.366). 1 for Gaussian residuals, larger for heavy tails.
+  static Scalar tail_ratio(const PassSums& s) noexcept {
+    if (s.count == 0) return Scalar(0);
+    const std::uint64_t half = (s.count + 1) / 2;
+    std::uint64_t acc = 0;
+    Scalar median_r2 = Scalar(32);
+    for (int b = 0; b < kTailBins; ++b) {
+      const std::uint32_t c = s.tail[static_cast<std::size_t>(b)];
+      if (acc + c >= half) {
+        const Scalar frac =
+            c > 0 ? static_cast<Scalar>(half - acc) / static_cast<Scalar>(c) : Scalar(0);
+        median_r2 = (static_cast<Scalar>(b) + frac) * Scalar(32) / Scalar(kTailBins);
+        break;
+      }
+      acc += c;
+    }
+    const Scalar mean_r2 = s.chi2 / static_cast<Scalar>(s.count);
+    if (!(median_r2 > Scalar(0))) return mean_r2 > Scalar(0) ? Scalar(1e6) : Scalar(1);
+    return std::sqrt((mean_r2 / Scalar(3)) / (median_r2 / Scalar(2.366)));
   }
 
   static void tangent_basis(const Vec3<Scalar>& d, Vec3<Scalar>* t1, Vec3<Scalar>* t2) noexcept {
@@ -288,14 +499,78 @@ class OneStepFit {
   }
 
  private:
-  static void apply(const VecP& step, Vec3<Scalar>* ks, Vec3<Scalar>* o_rad, Vec3<Scalar>* u,
-                    Vec3<Scalar>* rm, Vec3<Scalar>* d, const Vec3<Scalar>& t1,
-                    const Vec3<Scalar>& t2) noexcept {
-    *ks += step.template segment<3>(kIdxKs);
-    *o_rad += step.template segment<3>(kIdxO);
-    *u += step.template segment<3>(kIdxKof);
-    *rm += step.template segment<3>(kIdxRm);
-    *d = (*d + step(kIdxDir) * t1 + step(kIdxDir + 1) * t2).normalized();
+  static void apply(const VecP& step, Params* p) noexcept {
+    Vec3<Scalar> t1, t2;
+    tangent_basis(p->d, &t1, &t2);
+    p->ks += step.template segment<3>(kIdxKs);
+    p->o_rad += step.template segment<3>(kIdxO);
+    p->u += step.template segment<3>(kIdxKof);
+    p->rm += step.template segment<3>(kIdxRm);
+    p->d = (p->d + step(kIdxDir) * t1 + step(kIdxDir + 1) * t2).normalized();
+  }
+
+  // Holds parameter k: its row and column removed from the normal equations.
+  static void hold(int k, MatP* a, VecP* g) noexcept {
+    a->row(k).setZero();
+    a->col(k).setZero();
+    (*a)(k, k) = Scalar(1);
+    if (g != nullptr) (*g)(k) = Scalar(0);
+  }
+
+  static VecP vector_of(const Params& p) noexcept {
+    VecP v = VecP::Zero();
+    v.template segment<3>(kIdxKs) = p.ks;
+    v.template segment<3>(kIdxO) = p.o_rad;
+    v.template segment<3>(kIdxKof) = p.u;
+    v.template segment<3>(kIdxRm) = p.rm;
+    return v;
+  }
+  static VecP prior_means(const OneStepPrior<Scalar>& pr,
+                          const Normalization<Scalar>& norm) noexcept {
+    VecP v = VecP::Zero();
+    v.template segment<3>(kIdxKs) = pr.mean.ks;
+    v.template segment<3>(kIdxO) = pr.mean.o_rad;
+    v.template segment<3>(kIdxKof) = norm.to_unit(pr.mean.kof);
+    v.template segment<3>(kIdxRm) = pr.mean.rm_rad;
+    return v;
+  }
+  // Prior 1-sigmas in the fit's units; 0 where there is none (the direction of h_n never has one).
+  static VecP prior_sigmas(const OneStepPrior<Scalar>& pr,
+                           const Normalization<Scalar>& norm) noexcept {
+    VecP v = VecP::Zero();
+    v.template segment<3>(kIdxKs) = pr.sigma.ks;
+    v.template segment<3>(kIdxO) = pr.sigma.o_rad;
+    v.template segment<3>(kIdxKof) = pr.sigma.kof / norm.scale;
+    v.template segment<3>(kIdxRm) = pr.sigma.rm_rad;
+    for (int k = 0; k < kParams; ++k)
+      if (!(std::isfinite(v(k)) && v(k) > Scalar(0))) v(k) = Scalar(0);
+    return v;
+  }
+  static Scalar prior_cost(const OneStepPrior<Scalar>* pr, const Normalization<Scalar>& norm,
+                           const Params& p) noexcept {
+    if (pr == nullptr) return Scalar(0);
+    const VecP s = prior_sigmas(*pr, norm), m = prior_means(*pr, norm), v = vector_of(p);
+    Scalar c{0};
+    for (int k = 0; k < kParams; ++k) {
+      if (s(k) > Scalar(0)) c += (v(k) - m(k)) * (v(k) - m(k)) / (s(k) * s(k));
+    }
+    return c;
+  }
+  static void add_prior_information(const OneStepPrior<Scalar>* pr,
+                                    const Normalization<Scalar>& norm, MatP* a) noexcept {
+    if (pr == nullptr) return;
+    const VecP s = prior_sigmas(*pr, norm);
+    for (int k = 0; k < kParams; ++k) {
+      if (s(k) > Scalar(0)) (*a)(k, k) += Scalar(1) / (s(k) * s(k));
+    }
+  }
+  static void add_prior_gradient(const OneStepPrior<Scalar>* pr, const Normalization<Scalar>& norm,
+                                 const Params& p, VecP* g) noexcept {
+    if (pr == nullptr) return;
+    const VecP s = prior_sigmas(*pr, norm), m = prior_means(*pr, norm), v = vector_of(p);
+    for (int k = 0; k < kParams; ++k) {
+      if (s(k) > Scalar(0)) (*g)(k) += (v(k) - m(k)) / (s(k) * s(k));
+    }
   }
 };
 

@@ -5,10 +5,13 @@
 // by the reference magnitude so float32 keeps precision (DESIGN.md "Core").
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <limits>
+#include <vector>
 
 #include "magvec/core/frames.hpp"
 #include "magvec/core/types.hpp"
@@ -46,22 +49,63 @@ struct StoredSample {
   }
 };
 
+// Capacity of a store that grows on the heap (host batch calibration of recordings: memory in
+// proportion to the samples kept). Never instantiated by the firmware images.
+inline constexpr std::size_t kDynamicCapacity = 0;
+
+namespace detail {
+// Storage of a store: a fixed array, or (kDynamicCapacity) a growing vector.
+template <typename T, std::size_t Capacity>
+struct StoreBuffer {
+  std::array<T, Capacity> items{};
+  static constexpr std::size_t capacity() noexcept { return Capacity; }
+  bool ensure(std::size_t n) noexcept { return n <= Capacity; }
+  T* data() noexcept { return items.data(); }
+  const T* data() const noexcept { return items.data(); }
+};
+template <typename T>
+struct StoreBuffer<T, kDynamicCapacity> {
+  std::vector<T> items;
+  static constexpr std::size_t capacity() noexcept {
+    return std::numeric_limits<std::size_t>::max();
+  }
+  // Host only: grows geometrically; false if the allocation fails.
+  bool ensure(std::size_t n) noexcept {
+    if (n <= items.size()) return true;
+#if defined(__cpp_exceptions) || defined(__EXCEPTIONS)
+    try {
+      items.resize(std::max<std::size_t>(n, items.size() * 2));
+    } catch (...) {
+      return false;
+    }
+    return true;
+#else
+    return false;
+#endif
+  }
+  T* data() noexcept {
+    return items.data();
+  }
+  const T* data() const noexcept {
+    return items.data();
+  }
+};
+}  // namespace detail
+
 // Append-only store; samples beyond Capacity are refused (and counted by the caller).
 template <typename Scalar, std::size_t Capacity>
 class SampleStore {
-  static_assert(Capacity > 0, "SampleStore needs a positive capacity");
-
  public:
   static constexpr std::size_t kCapacity = Capacity;
 
   void clear() noexcept { size_ = 0; }
   std::size_t size() const noexcept { return size_; }
-  bool full() const noexcept { return size_ == Capacity; }
+  bool full() const noexcept { return size_ == samples_.capacity(); }
 
   // Stores a finite sample; returns false when full. r_bn may be null (no attitude).
   bool push(const Vec3<Scalar>& m, Scalar f, const Mat3<Scalar>* r_bn) noexcept {
-    if (size_ == Capacity) return false;
-    StoredSample<Scalar>& s = samples_[size_];
+    if (!samples_.ensure(size_ + 1)) return false;
+    StoredSample<Scalar>& s = samples_.data()[size_];
     s.m = {m(0), m(1), m(2)};
     s.f = f;
     s.flags = 0;
@@ -77,11 +121,13 @@ class SampleStore {
     return true;
   }
 
-  const StoredSample<Scalar>& operator[](std::size_t i) const noexcept { return samples_[i]; }
-  StoredSample<Scalar>& operator[](std::size_t i) noexcept { return samples_[i]; }
+  const StoredSample<Scalar>& operator[](std::size_t i) const noexcept {
+    return samples_.data()[i];
+  }
+  StoredSample<Scalar>& operator[](std::size_t i) noexcept { return samples_.data()[i]; }
 
  private:
-  std::array<StoredSample<Scalar>, Capacity> samples_{};
+  detail::StoreBuffer<StoredSample<Scalar>, Capacity> samples_{};
   std::size_t size_{0};
 };
 

@@ -14,6 +14,7 @@
 #include <CLI/CLI.hpp>
 #include <cmath>
 #include <iostream>
+#include <limits>
 #include <memory>
 #include <sstream>
 #include <string>
@@ -39,6 +40,9 @@ struct RunOptions {
   std::string calibration;
   std::string out;
   bool ekf_no_align = false;
+  std::uint32_t ins_latency_comp_us = 500;
+  std::uint32_t fusion_horizon_us = 50'000;
+  double time_offset_s = std::numeric_limits<double>::quiet_NaN();
 };
 
 using LiCal = core::BatchLiCalibrator<double, 512>;
@@ -254,7 +258,15 @@ void run(const RunOptions& o) {
   apply_faults(o.faults, &sc, &rc);
   host::hil::HilConfig hc;
   hc.loop.noise_nT = sc.mag_noise_nT > 0 ? sc.mag_noise_nT : 1.0;
-  hc.ins_latency_comp_us = rc.ins.can_latency_us;
+  // Configured, never taken from the injected fault: the loop does not know the true latency.
+  hc.ins_latency_comp_us = o.ins_latency_comp_us;
+  hc.horizon_us = o.fusion_horizon_us;
+  if (std::isfinite(o.time_offset_s)) {
+    hc.time_offset_us = host::hil::offset_us_from_s(o.time_offset_s);
+  } else if (!o.calibration.empty()) {
+    hc.time_offset_us =
+        host::hil::offset_us_from_s(read_calibration_file(o.calibration).time_offset_s);
+  }
   drivers::sim::Simulator sim(sc, o.seed);
   if (o.calibrator == "li") {
     core::BatchLiCalibratorConfig<double> lc;
@@ -304,6 +316,20 @@ void register_run(CLI::App& app) {
   sub->add_option("--calibration", opt->calibration,
                   "Calibration file (cal.json) installed as the active calibration (cal_id 1)")
       ->check(CLI::ExistingFile);
+  sub->add_option("--ins-latency-comp-us", opt->ins_latency_comp_us,
+                  "Known INS transport latency subtracted from CAN receive times (configuration; "
+                  "the ins-latency-us fault is not known to the loop)")
+      ->check(CLI::Range(0, 1'000'000))
+      ->capture_default_str();
+  sub->add_option("--fusion-horizon-us", opt->fusion_horizon_us,
+                  "Longest wait of a sample for the INS samples that bracket it, then its attitude "
+                  "is extrapolated and flagged (0: process on arrival)")
+      ->check(CLI::Range(0, 1'000'000))
+      ->capture_default_str();
+  sub->add_option("--time-offset-s", opt->time_offset_s,
+                  "Magnetometer stamp minus INS time of its attitude (s); overrides the "
+                  "--calibration file's time_offset_s")
+      ->check(CLI::Range(-10.0, 10.0));
   sub->add_option("--out", opt->out, "Record CSV (written atomically)")->required();
   sub->callback([opt] { run(*opt); });
 }

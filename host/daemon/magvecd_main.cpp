@@ -26,7 +26,6 @@
 #include <cerrno>
 #include <csignal>
 #include <cstring>
-#include <deque>
 #include <filesystem>
 #include <functional>
 #include <lcm/lcm-cpp.hpp>
@@ -44,6 +43,7 @@
 #include "magvec/drivers/sbg_can.hpp"
 #include "magvec/drivers/serial_fluxgate.hpp"
 #include "magvec/host/daemon/config.hpp"
+#include "magvec/host/daemon/device_feed.hpp"
 #include "magvec/host/daemon/event_pipeline.hpp"
 #include "magvec/host/daemon/lcm_codec.hpp"
 #include "magvec/host/daemon/sim_setup.hpp"
@@ -122,6 +122,7 @@ struct Persisted {
   bool present{false};
   core::SensorModel<double> model{};
   std::uint32_t cal_id{0};
+  double time_offset_s{0};  // cal.json time_offset_s
 };
 
 std::string cal_path(const Config& c) {
@@ -140,6 +141,7 @@ Persisted load_persisted(const Config& c) {
     const host::CalibrationFile f = host::read_calibration_file(path);
     p.present = true;
     p.model = f.model;
+    p.time_offset_s = f.time_offset_s;
     const auto it = f.quality.extra.find("cal_id");
     p.cal_id = it != f.quality.extra.end() && it->second >= 1 && it->second < 4e9
                    ? static_cast<std::uint32_t>(it->second)
@@ -246,8 +248,7 @@ class SimDevices final : public Devices {
 // Real devices through the Linux transports.
 class RealDevices final : public Devices {
  public:
-  explicit RealDevices(const Config& c)
-      : latency_comp_us_(c.ins.latency_comp_us), reference_nT_(c.calibration.reference_field_nT) {
+  explicit RealDevices(const Config& c) : reference_nT_(c.calibration.reference_field_nT) {
     drivers::OsError err;
     const auto& m = c.magnetometer;
     if (m.link == "spi") {
@@ -298,43 +299,21 @@ class RealDevices final : public Devices {
     drivers::sbg::DecoderConfig dc;
     dc.ids = c.ins.ids;
     ins_ = std::make_unique<drivers::sbg::CanAttitudeSource>(*can_, dc);
+    feed_ = std::make_unique<DeviceFeed>(*mag_, *ins_, reference_nT_);
     describe_ = (m.link == "spi" ? "ADS131M04 on " + m.spi_device + " (DRDY " + m.drdy_chip +
                                        " line " + std::to_string(m.drdy_line) + ")"
                                  : "serial fluxgate on " + m.serial_device) +
                 ", SBG INS on " + c.ins.can_interface;
   }
 
-  // The two kernel-timestamped streams (INS frames, DRDY edges) are fed in timestamp order,
-  // whatever the scheduling: an INS sample is fed before a magnetometer sample only if its
-  // validity time is not later than the sample's, so a stall of the daemon (several edges and
-  // epochs queued) cannot let a later epoch into the interpolation of an earlier sample. When
-  // the read times out no edge is pending, and any later edge is newer than every INS sample
-  // received so far: all of them are fed. (Found in the VM end-to-end test: feeding the INS
-  // frames only before the DRDY wait left 96 % of the samples without attitude; feeding all
-  // queued frames after a stall put later epochs into the interpolation.)
+  // DeviceFeed (device_feed.hpp): every INS sample as soon as it has been received, before the
+  // magnetometer sample read after it; the pipeline's fusion horizon does the time ordering. (The
+  // earlier rule, an INS sample only if not later than the magnetometer sample, left every query
+  // past the newest INS sample: a held attitude instead of an interpolated one.)
   bool poll(EventHandler& h, std::uint32_t max_wait_us) override {
-    drain_ins();
-    hal::MagnetometerSample s;
-    const hal::Status st = mag_->read(s, max_wait_us);
-    if (st == hal::Status::kOk) {
-      drain_ins();
-      while (!pending_.empty() && pending_.front().t_us <= s.t_us + latency_comp_us_) {
-        h.on_attitude(pending_.front());
-        pending_.pop_front();
-      }
-      h.on_magnetometer(s, reference_nT_);
-    } else {
-      for (const hal::AttitudeSample& a : pending_)
-        h.on_attitude(a);
-      pending_.clear();
-      if (st != hal::Status::kTimeout && st != hal::Status::kNoData) {
-        h.on_read_error(st);
-        // A failing device answers at once: wait out the period (serving LCM) rather than spin.
-        if (wait) wait(max_wait_us);
-        return true;
-      }
-    }
-    if (wait) wait(0);
+    const FeedResult r = feed_->poll(h, max_wait_us);
+    // A failing device answers at once: wait out the period (serving LCM) rather than spin.
+    if (wait) wait(r == FeedResult::kError ? max_wait_us : 0);
     return true;
   }
   const hal::MagCounters& mag_counters() const override { return mag_->counters(); }
@@ -343,17 +322,6 @@ class RealDevices final : public Devices {
   std::function<void(std::uint32_t)> wait;
 
  private:
-  // INS samples received but not yet fed (newer than the last magnetometer sample); bounded.
-  void drain_ins() {
-    hal::AttitudeSample a;
-    for (int guard = 0; guard < 256 && ins_->read(a, 0) == hal::Status::kOk; ++guard) {
-      if (pending_.size() >= kMaxPending) pending_.pop_front();  // counted by the gap check
-      pending_.push_back(a);
-    }
-  }
-  static constexpr std::size_t kMaxPending = 256;
-  std::deque<hal::AttitudeSample> pending_;
-  std::uint64_t latency_comp_us_;
   double reference_nT_;
   drivers::LinuxClock clock_;
   std::unique_ptr<drivers::SpidevBus> spi_;
@@ -364,6 +332,7 @@ class RealDevices final : public Devices {
   std::unique_ptr<drivers::SocketCanBus> can_;
   std::unique_ptr<drivers::sbg::CanAttitudeSource> ins_;
   hal::MagnetometerSource* mag_{nullptr};
+  std::unique_ptr<DeviceFeed> feed_;
   std::string describe_;
 };
 
@@ -459,6 +428,7 @@ class Daemon final : public EventHandler {
       }
     }
     spdlog::info("stopping ({} samples)", mag_events_);
+    ep_.flush();  // the samples still inside the fusion horizon get their records
     shutdown_persist();
     publish_status();
     publish_health();
@@ -544,6 +514,7 @@ class Daemon final : public EventHandler {
       carried.present = st.cal_id != 0;
       carried.model = st.active;
       carried.cal_id = st.cal_id;
+      carried.time_offset_s = ep_.pipeline()->time_offset_s();
       restart_calibration = st.state == core::CalState::kCollecting ||
                             st.state == core::CalState::kSolving ||
                             st.state == core::CalState::kValidating;
@@ -558,7 +529,8 @@ class Daemon final : public EventHandler {
     // pipeline.
     event(session_start_event(++sequence_, config_text_));
     const Persisted& install = first ? persisted_ : carried;
-    if (install.present) event(set_active_event(++sequence_, install.model, install.cal_id));
+    if (install.present)
+      event(set_active_event(++sequence_, install.model, install.cal_id, install.time_offset_s));
     if (config.calibration.mode != "none" &&
         ((first && config.calibration.start_on_boot) || restart_calibration)) {
       if (restart_calibration) spdlog::info("calibration in progress restarted after the reload");
@@ -622,6 +594,8 @@ class Daemon final : public EventHandler {
     if (st.cal_id == 0) return false;
     host::CalibrationFile f;
     f.model = st.active;
+    // The loop's calibrators do not estimate the time offset: the one in use is kept.
+    f.time_offset_s = ep_.pipeline()->time_offset_s();
     f.quality.verdict = "ok";
     f.quality.reason = std::string("accepted by magvecd (") + why + ")";
     f.quality.extra["cal_id"] = st.cal_id;
@@ -640,6 +614,7 @@ class Daemon final : public EventHandler {
     persisted_.present = true;
     persisted_.model = st.active;
     persisted_.cal_id = st.cal_id;
+    persisted_.time_offset_s = f.time_offset_s;
     spdlog::info("calibration {} persisted to {} ({})", st.cal_id, path, why);
     return true;
   }
@@ -736,7 +711,8 @@ class Daemon final : public EventHandler {
       const core::SensorModel<double> identity;
       const core::SensorModel<double>& m = persisted_.present ? persisted_.model : identity;
       const std::uint32_t id = persisted_.present ? persisted_.cal_id : 0;
-      event(set_active_event(++sequence_, m, id));
+      event(
+          set_active_event(++sequence_, m, id, persisted_.present ? persisted_.time_offset_s : 0));
       r.ok = true;
       r.message = persisted_.present
                       ? "reverted to the persisted calibration " + std::to_string(id)

@@ -340,7 +340,7 @@ bool SimRig::step() noexcept {
     ++jumps_;
   }
   if ((s.flags & kFlagNoIns) == 0)  // a scenario without an INS leaves the CAN bus silent
-    ins_.run_until(s.t_s + config_.ins_lead_s, config_.time);
+    ins_.run_until(s.t_s + config_.ins_lead_s - 1e-6 * config_.ins.can_latency_us, config_.time);
   const std::uint64_t t_us = host_us(s.t_s);
   if (config_.link == MagLink::kSpi) {
     adc_.convert(s, t_us);

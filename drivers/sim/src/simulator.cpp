@@ -168,6 +168,19 @@ ScenarioConfig scenario_survey() noexcept {
   return c;
 }
 
+ScenarioConfig scenario_rotation() noexcept {
+  ScenarioConfig c;
+  c.name = "rotation";
+  c.truth = li_truth();
+  c.h_n_nT = li_field();
+  c.pattern = AttitudePattern::kRotation;
+  c.rate_hz = 1000.0;
+  c.num_samples = 60000;
+  c.mag_noise_nT = 0.3;
+  c.ins_noise_deg = 0.015;
+  return c;
+}
+
 double survey_duration_s(const SurveyConfig& s, std::uint32_t lines) noexcept {
   if (lines == 0) return s.manoeuvre_s;
   return s.manoeuvre_s + static_cast<double>(lines) * s.line_s +
@@ -234,6 +247,14 @@ Mat3<double> Simulator::true_attitude_at(double t_s, double* theta_deg) const no
           config_.turntable_start_deg + static_cast<double>(k) * config_.turntable_step_deg;
       if (theta_deg != nullptr) *theta_deg = theta;
       return config_.turntable_mount * core::rot_z(deg(theta));
+    }
+    case AttitudePattern::kRotation: {
+      const RotationConfig& r = config_.rotation;
+      core::LiEuler<double> e;
+      e.alpha = deg(r.heading_rate_deg_s) * t_rel;
+      e.beta = deg(r.pitch_amp_deg) * std::sin(kTwoPi * t_rel / r.pitch_period_s);
+      e.gamma = deg(r.roll_amp_deg) * std::sin(kTwoPi * t_rel / r.roll_period_s + 1.0);
+      return core::r_bn_from_li(e);
     }
     case AttitudePattern::kSurvey:
     default: {

@@ -62,6 +62,10 @@ sim::ScenarioConfig make_scenario() noexcept {
 sim::SimRigConfig make_rig_config() noexcept {
   sim::SimRigConfig r;
   r.adc.transfer.nT_per_volt = {1e5, 1e5, 1e5};
+  // This image queries the attitude buffer when a sample arrives: the rig delivers each INS
+  // epoch 20 ms ahead of the sample, so the bracketing epoch is there (the host pipeline, which
+  // waits for it, sees the INS as real hardware delivers it).
+  r.ins_lead_s = 0.02 + 1e-6 * r.ins.can_latency_us;
   return r;
 }
 

@@ -8,6 +8,8 @@ void EventPipeline::apply(const magvec_lcm::pipeline_event& e) {
     case magvec_lcm::pipeline_event::SESSION_START: {
       Config c = parse_config(e.config_toml, "session configuration");
       auto p = Pipeline::create(c, sink_);
+      // The old session's pending samples get their records before the new session starts.
+      if (pipeline_) pipeline_->flush();
       pipeline_ = std::move(p);
       config_ = std::move(c);
       ++sessions_;
@@ -20,6 +22,7 @@ void EventPipeline::apply(const magvec_lcm::pipeline_event& e) {
       }
       pipeline_->set_active(model_from_arrays(e.w, e.o_nT, e.rm_quat),
                             static_cast<std::uint32_t>(e.cal_id));
+      pipeline_->set_time_offset_s(e.time_offset_s);
       return;
     case magvec_lcm::pipeline_event::START_CALIBRATION:
       if (!pipeline_) {
@@ -32,6 +35,10 @@ void EventPipeline::apply(const magvec_lcm::pipeline_event& e) {
       ++unknown_events_;
       return;
   }
+}
+
+void EventPipeline::flush() noexcept {
+  if (pipeline_) pipeline_->flush();
 }
 
 void EventPipeline::apply(const magvec_lcm::mag_sample& m) noexcept {

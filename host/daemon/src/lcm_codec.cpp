@@ -131,10 +131,11 @@ magvec_lcm::pipeline_event session_start_event(std::int64_t sequence, const std:
 
 magvec_lcm::pipeline_event set_active_event(std::int64_t sequence,
                                             const core::SensorModel<double>& model,
-                                            std::uint32_t cal_id) {
+                                            std::uint32_t cal_id, double time_offset_s) {
   magvec_lcm::pipeline_event e = blank_event(magvec_lcm::pipeline_event::SET_ACTIVE, sequence);
   model_to_arrays(model, e.w, e.o_nT, e.rm_quat);
   e.cal_id = static_cast<std::int32_t>(cal_id);
+  e.time_offset_s = time_offset_s;
   return e;
 }
 

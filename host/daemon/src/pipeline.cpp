@@ -1,6 +1,8 @@
 // magvecd Pipeline; see pipeline.hpp.
 #include "magvec/host/daemon/pipeline.hpp"
 
+#include <cmath>
+
 #include "magvec/core/batch_li_calibrator.hpp"
 #include "magvec/core/ekf_calibrator.hpp"
 #include "magvec/host/daemon/sim_setup.hpp"
@@ -25,17 +27,25 @@ template <typename Calibrator>
 class PipelineImpl final : public Pipeline {
  public:
   PipelineImpl(std::string name, std::unique_ptr<Calibrator> cal, hal::RecordSink& sink,
-               const hil::HilConfig& hc, double mag_rate_hz, double ins_rate_hz)
+               const hil::HilConfig& hc, double mag_rate_hz, double ins_rate_hz, bool offset_fixed)
       : name_(std::move(name)),
         cal_(std::move(cal)),
-        core_(*cal_, sink, hc, mag_rate_hz, ins_rate_hz) {}
+        core_(*cal_, sink, hc, mag_rate_hz, ins_rate_hz),
+        offset_fixed_(offset_fixed) {}
 
   void on_attitude(const hal::AttitudeSample& a) noexcept override { core_.on_attitude(a); }
-  hal::OutputRecord on_magnetometer(const hal::MagnetometerSample& s,
-                                    double f_ref_nT) noexcept override {
-    return core_.on_magnetometer(s, f_ref_nT);
+  void on_magnetometer(const hal::MagnetometerSample& s, double f_ref_nT) noexcept override {
+    core_.on_magnetometer(s, f_ref_nT);
   }
   void on_read_error() noexcept override { core_.on_read_error(); }
+  void flush() noexcept override { core_.flush(); }
+  void set_time_offset_s(double offset_s) noexcept override {
+    if (!offset_fixed_ && std::isfinite(offset_s))
+      core_.set_time_offset_us(hil::offset_us_from_s(offset_s));
+  }
+  double time_offset_s() const noexcept override {
+    return 1e-6 * static_cast<double>(core_.pipeline().time_offset_us());
+  }
   void start_calibration() noexcept override { core_.loop().start_calibration(); }
   void set_active(const core::SensorModel<double>& model, std::uint32_t cal_id) noexcept override {
     core_.loop().set_active(model, cal_id);
@@ -64,6 +74,7 @@ class PipelineImpl final : public Pipeline {
   std::string name_;
   std::unique_ptr<Calibrator> cal_;
   hil::LoopCore<Calibrator> core_;
+  bool offset_fixed_;
 };
 
 }  // namespace
@@ -73,24 +84,25 @@ std::unique_ptr<Pipeline> Pipeline::create(const Config& config, hal::RecordSink
   const hil::HilConfig hc = hil_config(config);
   const double mag_rate = config.magnetometer.rate_hz;
   const double ins_rate = config.ins.rate_hz;
+  const bool fixed = std::isfinite(config.ins.time_offset_s);
   if (cc.mode == "li") {
     core::BatchLiCalibratorConfig<double> lc;
     lc.batch.mag_noise_nT = cc.noise_nT;
     lc.batch.attitude_noise_deg = cc.attitude_noise_deg;
     lc.min_samples = cc.li_min_samples;
     return std::make_unique<PipelineImpl<LiCal>>("li", std::make_unique<LiCal>(lc), sink, hc,
-                                                 mag_rate, ins_rate);
+                                                 mag_rate, ins_rate, fixed);
   }
   if (cc.mode == "ekf") {
     core::EkfCalibratorConfig<double> ec;
     ec.ekf.noise_sigma_nT = cc.noise_nT;
     ec.align = cc.ekf_align;
     return std::make_unique<PipelineImpl<EkfCal>>("ekf", std::make_unique<EkfCal>(ec), sink, hc,
-                                                  mag_rate, ins_rate);
+                                                  mag_rate, ins_rate, fixed);
   }
   if (cc.mode == "none") {
     return std::make_unique<PipelineImpl<hil::NullCalibrator>>(
-        "none", std::make_unique<hil::NullCalibrator>(), sink, hc, mag_rate, ins_rate);
+        "none", std::make_unique<hil::NullCalibrator>(), sink, hc, mag_rate, ins_rate, fixed);
   }
   throw ConfigError("calibration.mode: unknown calibrator '" + cc.mode + "'");
 }

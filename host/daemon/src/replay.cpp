@@ -112,6 +112,7 @@ ReplayResult replay_log(const std::string& path, hal::RecordSink& sink,
     }
     compare();
   }
+  ep.flush();  // as the daemon does when it stops
   compare();
   if (ep.sessions() == 0)
     throw ReplayError(path + ": no SESSION_START event on channel " + pipeline_channel +

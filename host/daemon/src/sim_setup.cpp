@@ -44,6 +44,10 @@ hil::HilConfig hil_config(const Config& c) {
   hc.loop.validation_min_rms_nT = cc.validation_min_rms_nT;
   hc.loop.validate_against_active = cc.validate_against_active;
   hc.ins_latency_comp_us = c.ins.latency_comp_us;
+  hc.horizon_us = c.ins.fusion_horizon_us;
+  // A configured offset is fixed; otherwise the installed calibration's applies (SET_ACTIVE).
+  hc.time_offset_us =
+      std::isfinite(c.ins.time_offset_s) ? hil::offset_us_from_s(c.ins.time_offset_s) : 0;
   hc.require_attitude_valid = c.ins.require_attitude_valid;
   hc.start_calibration = false;  // start is a pipeline event (logged), never implicit
   return hc;

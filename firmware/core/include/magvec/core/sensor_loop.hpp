@@ -33,6 +33,9 @@ enum OutputFlag : std::uint32_t {
   kOutUncalibrated = 1u << 3,   // no calibration applied yet (identity model)
   kOutCalibrating = 1u << 4,    // a calibration is in progress (output still uses the active one)
   kOutRejectedByCal = 1u << 5,  // the calibrator gated this sample (spike)
+  // The attitude was extrapolated past the newest INS sample (the fusion horizon expired before
+  // INS samples bracketed the sample's time; SamplePipeline).
+  kOutAttExtrapolated = 1u << 6,
 };
 
 enum class CalState : std::uint8_t { kIdle, kCollecting, kSolving, kValidating, kApplied, kFailed };

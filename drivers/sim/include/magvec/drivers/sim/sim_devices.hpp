@@ -263,14 +263,16 @@ struct SimRigConfig {
   SimAds131Config adc{};
   SimSerialConfig serial{};
   SimSbgConfig ins{};
-  // The loop processes a magnetometer sample once the INS epochs up to t + ins_lead_s have been
-  // emitted, so the attitude can be interpolated instead of extrapolated (a fixed output delay).
-  double ins_lead_s{0.02};
+  // INS frames are delivered as on real hardware: with the magnetometer sample at t come the
+  // frames received by then, i.e. of the epochs up to t + ins_lead_s - CAN latency. So the epoch
+  // that brackets a sample arrives after it and the consumer must wait for it (the delayed fusion
+  // horizon of core::SamplePipeline). A positive lead delivers the INS early (ahead of reality).
+  double ins_lead_s{0.0};
   HostTimeMap time{};  // clock jump fault: time.jump_at_s, time.jump_us
 };
 
 // Owns the three devices and the clock; step() advances the simulation by one magnetometer
-// sample: INS frames up to t + lead, then the conversion (SPI) or the line (serial).
+// sample: the INS frames received by t + lead, then the conversion (SPI) or the line (serial).
 class SimRig {
  public:
   SimRig(Simulator& sim, const SimRigConfig& config) noexcept;

@@ -43,6 +43,7 @@ enum class AttitudePattern : std::uint8_t {
                      // samples
   kTurntable,        // R_bn = mount * Rz(theta): steps of turntable_step_deg about the vertical
   kSurvey,           // smooth calibration manoeuvre, then survey lines with alternating heading
+  kRotation,         // continuous rotation: constant heading rate, sinusoidal pitch and roll
 };
 
 // XZ-sweep fixture geometry (ERRATA 001-4).
@@ -65,6 +66,17 @@ struct SurveyConfig {
   double line_roll_period_s = 4.3;
 };
 
+// Continuous rotation (Li Euler angles): alpha = heading_rate * t, beta = pitch_amp *
+// sin(2 pi t / pitch_period), gamma = roll_amp * sin(2 pi t / roll_period + 1); peak pitch rate
+// 2 pi pitch_amp / pitch_period (likewise roll).
+struct RotationConfig {
+  double heading_rate_deg_s = 90.0;
+  double pitch_amp_deg = 30.0;
+  double pitch_period_s = 2.0944;  // peak pitch rate 90 deg/s
+  double roll_amp_deg = 20.0;
+  double roll_period_s = 1.3963;  // peak roll rate 90 deg/s
+};
+
 struct ScenarioConfig {
   const char* name = "custom";
   // Truth.
@@ -84,6 +96,7 @@ struct ScenarioConfig {
   double turntable_start_deg = 0.0;
   core::Mat3<double> turntable_mount = core::Mat3<double>::Identity();  // R_bn at theta = 0
   SurveyConfig survey{};
+  RotationConfig rotation{};
   // Noise.
   double mag_noise_nT = 0.0;   // white Gaussian, per axis, SD
   double ins_noise_deg = 0.0;  // white Gaussian on each Li Euler angle (alpha, beta, gamma), SD
@@ -126,6 +139,10 @@ ScenarioConfig scenario_sine_xz(Fixture fixture = Fixture::kPlaneNormal) noexcep
 // Survey: Li truth and field, 200 Hz, calibration manoeuvre (3 full heading turns, +-30 deg
 // pitch/roll) then 4 survey lines with alternating heading N/S and a few degrees of tilt.
 ScenarioConfig scenario_survey() noexcept;
+
+// Continuous rotation (heading, pitch and roll rates up to 90 deg/s): Li truth and field, 1 kHz
+// magnetometer, 0.3 nT and 0.015 deg noise, 60 s.
+ScenarioConfig scenario_rotation() noexcept;
 
 // Total length of the survey pattern (manoeuvre + lines + turns) for `lines` lines.
 double survey_duration_s(const SurveyConfig& s, std::uint32_t lines) noexcept;

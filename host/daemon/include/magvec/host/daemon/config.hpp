@@ -53,6 +53,11 @@ struct InsConfig {
   std::string can_interface{"can0"};
   double rate_hz{100};
   std::uint32_t latency_comp_us{500};  // subtracted from CAN receive times
+  // Delayed fusion horizon: how long (magnetometer time) a sample waits for the INS samples that
+  // bracket it before its attitude is extrapolated and flagged.
+  std::uint32_t fusion_horizon_us{50'000};
+  // Magnetometer time stamp minus INS time of its attitude; nan: the calibration's (cal.json).
+  double time_offset_s{std::numeric_limits<double>::quiet_NaN()};
   bool require_attitude_valid{true};
   drivers::sbg::CanIds ids{};
 };

@@ -3,7 +3,9 @@
 // replay` (which reads them back from a log) go through here, so they run the same code on the
 // same values:
 //   pipeline_event SESSION_START  -> Pipeline::create(parse_config(config_toml))
-//   pipeline_event SET_ACTIVE     -> set_active(model, cal_id)
+//   pipeline_event SET_ACTIVE     -> set_active(model, cal_id), set_time_offset_s
+//   (a SESSION_START first flushes the previous pipeline: its pending samples get their records;
+//   flush() does the same at the end of a stream: daemon stop, end of a replayed log)
 //   pipeline_event START_CALIBRATION -> start_calibration()
 //   mag_sample / attitude         -> on_magnetometer / on_attitude
 // Samples before the first SESSION_START have no pipeline: they are counted and skipped.
@@ -27,6 +29,7 @@ class EventPipeline {
   void apply(const magvec_lcm::pipeline_event& e);
   void apply(const magvec_lcm::mag_sample& m) noexcept;
   void apply(const magvec_lcm::attitude& a) noexcept;
+  void flush() noexcept;
 
   Pipeline* pipeline() noexcept { return pipeline_.get(); }
   const Config& config() const noexcept { return config_; }

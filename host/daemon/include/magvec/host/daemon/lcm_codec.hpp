@@ -39,7 +39,7 @@ core::SensorModel<double> model_from_arrays(const double w[9], const double o[3]
 magvec_lcm::pipeline_event session_start_event(std::int64_t sequence, const std::string& config);
 magvec_lcm::pipeline_event set_active_event(std::int64_t sequence,
                                             const core::SensorModel<double>& model,
-                                            std::uint32_t cal_id);
+                                            std::uint32_t cal_id, double time_offset_s = 0);
 magvec_lcm::pipeline_event start_calibration_event(std::int64_t sequence);
 
 magvec_lcm::calibration_state to_lcm(const CalibrationStatus& s, std::uint64_t t_us,

@@ -37,10 +37,16 @@ class Pipeline {
   static std::unique_ptr<Pipeline> create(const Config& config, hal::RecordSink& sink);
   virtual ~Pipeline() = default;
 
+  // Records go to the sink when their sample is processed (delayed fusion horizon: on a later
+  // INS or magnetometer event, or on flush()).
   virtual void on_attitude(const hal::AttitudeSample& a) noexcept = 0;
-  virtual hal::OutputRecord on_magnetometer(const hal::MagnetometerSample& s,
-                                            double f_ref_nT) noexcept = 0;
+  virtual void on_magnetometer(const hal::MagnetometerSample& s, double f_ref_nT) noexcept = 0;
   virtual void on_read_error() noexcept = 0;
+  virtual void flush() noexcept = 0;
+  // The magnetometer<->INS time offset of an installed calibration (ignored when the
+  // configuration fixes devices.ins.time_offset_s).
+  virtual void set_time_offset_s(double offset_s) noexcept = 0;
+  virtual double time_offset_s() const noexcept = 0;
   virtual void start_calibration() noexcept = 0;
   virtual void set_active(const core::SensorModel<double>& model,
                           std::uint32_t cal_id) noexcept = 0;

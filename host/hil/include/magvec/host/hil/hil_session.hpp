@@ -1,8 +1,8 @@
 // Host-in-the-loop harness (DESIGN.md "Host-in-the-loop simulation", issue 5 item 7):
 //   simulated devices (drivers/sim SimRig: ADS131M04 on SPI + DRDY or serial ASCII fluxgate, SBG
 //   INS on CAN) -> the REAL drivers (Ads131Fluxgate / SerialFluxgate / CanAttitudeSource, i.e.
-//   the byte codecs) -> core::AttitudeBuffer (every valid INS sample inserted; queried at every
-//   magnetometer time, slerp) -> core::SensorLoop<double, Calibrator> -> hal::RecordSink.
+//   the byte codecs) -> core::SamplePipeline (AttitudeBuffer with the delayed fusion horizon, slerp
+//   at every magnetometer time) -> core::SensorLoop<double, Calibrator> -> hal::RecordSink.
 // Simulated time only: each step() advances the rig by one magnetometer sample, no sleeping, so a
 // run is as fast as the CPU allows and deterministic from the scenario seed.
 //
@@ -42,7 +42,8 @@ namespace magvec::host::hil {
 // through the real drivers. poll() hands every event the drivers produced since the last rig step
 // to a handler with on_attitude(const hal::AttitudeSample&), on_magnetometer(const
 // hal::MagnetometerSample&, double f_ref_nT) and on_read_error(hal::Status): first the INS samples
-// (they lead the magnetometer by SimRigConfig::ins_lead_s), then the magnetometer samples.
+// received by the magnetometer sample's time (SimRigConfig::ins_lead_s), then the magnetometer
+// samples.
 class SimFrontEnd {
  public:
   SimFrontEnd(drivers::sim::Simulator& sim, const drivers::sim::SimRigConfig& rig_config) noexcept
@@ -115,9 +116,13 @@ class HilSession {
   // Device start-up (ADC reset + gain configuration on SPI). kOk or the driver's status.
   hal::Status init() noexcept { return front_.init(); }
 
-  // One magnetometer sample period of simulated time; false when the scenario has ended.
+  // One magnetometer sample period of simulated time; false when the scenario has ended (the
+  // samples still waiting for INS samples are then processed: every sample gets its record).
   bool step() noexcept {
-    if (!front_.rig().step()) return false;
+    if (!front_.rig().step()) {
+      core_.flush();
+      return false;
+    }
     core_.count_step();
     if (config_.start_calibration && !started_) {
       core_.loop().start_calibration();
@@ -147,6 +152,7 @@ class HilSession {
     return core_.buffer();
   }
   const HilCounters& counters() const noexcept { return core_.counters(); }
+  const LoopCore<Calibrator, BufferCapacity>& core() const noexcept { return core_; }
   const hal::MagCounters& mag_counters() const noexcept { return front_.mag_counters(); }
   const hal::AttitudeCounters& attitude_counters() const noexcept {
     return front_.attitude_counters();

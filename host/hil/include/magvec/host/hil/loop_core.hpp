@@ -1,24 +1,20 @@
-// LoopCore: the driver-independent half of the host sensor pipeline (DESIGN.md "Host-in-the-loop
-// simulation"; shared by HilSession and magvecd's Pipeline): it consumes raw input events only -
-// INS attitude samples (hal::AttitudeSample as a driver delivers them) and magnetometer samples
-// (hal::MagnetometerSample + the scalar reference) - and runs core::AttitudeBuffer (every valid INS
-// sample inserted; queried at every magnetometer time, slerp) -> core::SensorLoop -> RecordSink.
-// Feeding the same events in the same order gives bit-identical records (no clock, no I/O, no
-// randomness here), which is what makes `magvec replay` of an LCM log exact.
+// LoopCore: the driver-independent half of the host sensor pipeline (shared by HilSession and
+// magvecd's Pipeline): it consumes raw input events only - INS attitude samples
+// (hal::AttitudeSample as a driver delivers them) and magnetometer samples
+// (hal::MagnetometerSample + the scalar reference) - converts them and runs core::SamplePipeline
+// (AttitudeBuffer with the delayed fusion horizon -> SensorLoop; its rules for time jumps,
+// reordering, dropouts and horizon expiry are the core's) -> RecordSink.
+// A record is emitted when its sample is processed: when INS samples bracket it or the horizon
+// expires, so on_attitude can emit records too, and flush() emits what is still pending at the
+// end of a stream. Feeding the same events in the same order gives bit-identical records (no
+// clock, no I/O, no randomness here), which is what makes `magvec replay` of an LCM log exact.
 //
 // Health (HilCounters), on top of the drivers' counters and LoopHealth:
 //   - mag_read_errors: reads that returned a driver error (CRC, malformed...): no record
 //     (counted by the caller through on_read_error());
-//   - mag_not_fresh: samples the device marked not new (ADC dropout decision, sim_devices.hpp):
-//     passed to the loop as a dropout (NaN, never as a device error), so the record carries
-//     kOutDropout;
-//   - mag_missing: samples missing from the regular cadence (time step of k periods, 1.5 < k <= 10:
-//     k - 1 missing): frames lost to CRC errors, lines skipped or rejected on the serial link;
-//   - mag_time_jumps: time steps < 0.5 period or > 10 periods (clock jumps);
-//   - att_invalid: INS samples without ATTITUDE_VALID (not inserted: the buffer shows a gap);
-//   - att_gaps: INS sample spacing > 1.5 INS periods (missing INS);
-//   - att_time_jumps: INS time going backwards (buffer cleared: it must not mix time bases);
-//   - att_rejected: inserts the buffer refused (duplicates, invalid quaternions, too old).
+//   - the rest come from core::PipelineCounters (sample_pipeline.hpp): mag_not_fresh (dropout
+//     records), mag_missing, mag_time_jumps, att_invalid, att_gaps, att_time_jumps, att_rejected,
+//     and the horizon figures (horizon_expired, extrapolated, queue_full, max_queued).
 // Zero heap allocations per event.
 #pragma once
 
@@ -28,6 +24,7 @@
 
 #include "magvec/core/attitude_buffer.hpp"
 #include "magvec/core/frames.hpp"
+#include "magvec/core/sample_pipeline.hpp"
 #include "magvec/core/sensor_loop.hpp"
 #include "magvec/hal/attitude_source.hpp"
 #include "magvec/hal/magnetometer_source.hpp"
@@ -41,6 +38,12 @@ struct HilConfig {
   // Subtracted from CAN receive times to get the attitude validity time on the host clock
   // (known transport latency; the sim's default CAN latency).
   std::uint32_t ins_latency_comp_us{500};
+  // Longest wait of a magnetometer sample for INS samples that bracket it (delayed fusion
+  // horizon, magnetometer time); 0 processes each sample at once.
+  std::uint32_t horizon_us{50'000};
+  // Magnetometer time stamp minus the INS time of the attitude it belongs to (cal.json
+  // time_offset_s): a sample stamped t pairs with the attitude at t - time_offset.
+  std::int64_t time_offset_us{0};
   bool require_attitude_valid{true};
   bool start_calibration{true};
 };
@@ -57,6 +60,10 @@ struct HilCounters {
   std::uint64_t att_gaps{0};
   std::uint64_t att_time_jumps{0};
   std::uint64_t att_rejected{0};
+  std::uint64_t horizon_expired{0};
+  std::uint64_t extrapolated{0};
+  std::uint64_t queue_full{0};
+  std::uint64_t max_queued{0};
   std::uint64_t records{0};
   std::uint64_t sink_errors{0};
 };
@@ -81,106 +88,101 @@ inline hal::OutputRecord to_hal_record(const core::OutputRecord<double>& r) noex
   return o;
 }
 
-template <typename Calibrator, std::size_t BufferCapacity = 64>
+// Seconds -> whole microseconds (the time offset of cal.json and the CLI options).
+inline std::int64_t offset_us_from_s(double s) noexcept {
+  return static_cast<std::int64_t>(std::llround(s * 1e6));
+}
+
+template <typename Calibrator, std::size_t BufferCapacity = 64, std::size_t QueueCapacity = 256>
 class LoopCore {
  public:
+  using Core = core::SamplePipeline<double, Calibrator, BufferCapacity, QueueCapacity>;
+
   LoopCore(Calibrator& calibrator, hal::RecordSink& sink, const HilConfig& config,
            double mag_rate_hz, double ins_rate_hz) noexcept
       : config_(config),
-        buffer_(config.buffer),
-        loop_(calibrator, config.loop),
-        sink_(sink),
-        mag_period_us_(1e6 / mag_rate_hz),
-        ins_period_us_(1e6 / ins_rate_hz) {}
+        core_(calibrator, pipeline_config(config, mag_rate_hz, ins_rate_hz)),
+        sink_(sink) {}
 
-  // One INS sample as the attitude driver delivered it.
+  // One INS sample as the attitude driver delivered it (may emit records it makes ready).
   void on_attitude(const hal::AttitudeSample& a) noexcept {
-    ++counters_.att_samples;
-    if (config_.require_attitude_valid && (a.flags & hal::kAttAttitudeValid) == 0) {
-      ++counters_.att_invalid;
-      return;
-    }
-    const std::uint64_t t =
-        a.t_us > config_.ins_latency_comp_us ? a.t_us - config_.ins_latency_comp_us : 0;
-    if (have_att_) {
-      if (t < last_att_us_) {
-        ++counters_.att_time_jumps;
-        buffer_.clear();
-      } else if (static_cast<double>(t - last_att_us_) > 1.5 * ins_period_us_) {
-        ++counters_.att_gaps;
-      }
-    }
-    have_att_ = true;
-    last_att_us_ = t;
+    const bool valid = !config_.require_attitude_valid || (a.flags & hal::kAttAttitudeValid) != 0;
     const core::Quat<double> q(a.q_nb[0], a.q_nb[1], a.q_nb[2], a.q_nb[3]);
-    const core::AttitudeInsert r = buffer_.insert(t, q);
-    if (r == core::AttitudeInsert::kDuplicate || r == core::AttitudeInsert::kTooOld ||
-        r == core::AttitudeInsert::kInvalid) {
-      ++counters_.att_rejected;
-    }
+    core_.on_attitude(a.t_us, q, valid, Emitter{*this});
   }
 
   // A magnetometer read that failed (CRC, malformed...): counted, no record.
   void on_read_error() noexcept { ++counters_.mag_read_errors; }
 
   // One magnetometer sample as the driver delivered it, with the scalar reference |h| (NaN when
-  // none); emits exactly one record to the sink and returns it.
-  hal::OutputRecord on_magnetometer(const hal::MagnetometerSample& s, double f_ref_nT) noexcept {
-    ++counters_.mag_samples;
-    if (have_mag_) {
-      const double ratio =
-          (static_cast<double>(s.t_us) - static_cast<double>(last_mag_us_)) / mag_period_us_;
-      if (ratio < 0.5 || ratio > 10.0) {
-        ++counters_.mag_time_jumps;
-      } else if (ratio > 1.5) {
-        counters_.mag_missing += static_cast<std::uint64_t>(std::llround(ratio)) - 1;
-      }
-    }
-    have_mag_ = true;
-    last_mag_us_ = s.t_us;
-
+  // none). Exactly one record per sample reaches the sink, once the sample is processed.
+  void on_magnetometer(const hal::MagnetometerSample& s, double f_ref_nT) noexcept {
     core::MagSample<double> m;
     m.t_us = s.t_us;
     m.m_nT = core::Vec3<double>(s.m_nT[0], s.m_nT[1], s.m_nT[2]);
     m.f_ref_nT = f_ref_nT;
     m.device_error = (s.flags & hal::kMagInvalidMask) != 0;
-    if ((s.flags & hal::kMagNotFresh) != 0) {
-      // Not new data: a dropout, whatever the held codes look like (a held full-scale code was
-      // already counted as saturated on its fresh frame by the driver).
-      ++counters_.mag_not_fresh;
-      m.device_error = false;
-      m.m_nT.setConstant(std::numeric_limits<double>::quiet_NaN());
-    }
-    const core::AttitudeQuery<double> q = buffer_.at(s.t_us);
-    core::Mat3<double> r_bn;
-    const bool usable = core::attitude_usable(q.status);
-    if (usable) r_bn = core::r_bn_from_quat(q.q_nb);
-    const hal::OutputRecord out = to_hal_record(loop_.process(m, usable ? &r_bn : nullptr));
-    ++counters_.records;
-    if (sink_.emit(out) != hal::Status::kOk) ++counters_.sink_errors;
-    return out;
+    core_.on_magnetometer(m, (s.flags & hal::kMagNotFresh) != 0, Emitter{*this});
   }
+
+  // Emits every pending record (end of the stream, before a new session).
+  void flush() noexcept { core_.flush(Emitter{*this}); }
+
+  void set_time_offset_us(std::int64_t offset_us) noexcept { core_.set_time_offset_us(offset_us); }
 
   void count_step() noexcept { ++counters_.steps; }
 
-  core::SensorLoop<double, Calibrator>& loop() noexcept { return loop_; }
-  const core::SensorLoop<double, Calibrator>& loop() const noexcept { return loop_; }
-  const core::AttitudeBuffer<double, BufferCapacity>& buffer() const noexcept { return buffer_; }
-  const HilCounters& counters() const noexcept { return counters_; }
+  core::SensorLoop<double, Calibrator>& loop() noexcept { return core_.loop(); }
+  const core::SensorLoop<double, Calibrator>& loop() const noexcept { return core_.loop(); }
+  const core::AttitudeBuffer<double, BufferCapacity>& buffer() const noexcept {
+    return core_.buffer();
+  }
+  const Core& pipeline() const noexcept { return core_; }
+  const HilCounters& counters() const noexcept {
+    const core::PipelineCounters& c = core_.counters();
+    counters_.mag_samples = c.mag_samples;
+    counters_.mag_not_fresh = c.mag_not_fresh;
+    counters_.mag_missing = c.mag_missing;
+    counters_.mag_time_jumps = c.mag_time_jumps;
+    counters_.att_samples = c.att_samples;
+    counters_.att_invalid = c.att_invalid;
+    counters_.att_gaps = c.att_gaps;
+    counters_.att_time_jumps = c.att_time_jumps;
+    counters_.att_rejected = c.att_rejected;
+    counters_.horizon_expired = c.horizon_expired;
+    counters_.extrapolated = c.extrapolated;
+    counters_.queue_full = c.queue_full;
+    counters_.max_queued = c.max_queued;
+    counters_.records = c.records;
+    return counters_;
+  }
   const HilConfig& config() const noexcept { return config_; }
 
  private:
+  struct Emitter {
+    LoopCore& self;
+    void operator()(const core::OutputRecord<double>& r) const noexcept {
+      if (self.sink_.emit(to_hal_record(r)) != hal::Status::kOk) ++self.counters_.sink_errors;
+    }
+  };
+
+  static core::PipelineConfig<double> pipeline_config(const HilConfig& c, double mag_rate_hz,
+                                                      double ins_rate_hz) noexcept {
+    core::PipelineConfig<double> p;
+    p.loop = c.loop;
+    p.buffer = c.buffer;
+    p.ins_latency_us = c.ins_latency_comp_us;
+    p.time_offset_us = c.time_offset_us;
+    p.horizon_us = c.horizon_us;
+    p.mag_period_us = 1e6 / mag_rate_hz;
+    p.ins_period_us = 1e6 / ins_rate_hz;
+    return p;
+  }
+
   HilConfig config_;
-  core::AttitudeBuffer<double, BufferCapacity> buffer_;
-  core::SensorLoop<double, Calibrator> loop_;
+  Core core_;
   hal::RecordSink& sink_;
-  double mag_period_us_;
-  double ins_period_us_;
-  HilCounters counters_{};
-  std::uint64_t last_mag_us_{0};
-  std::uint64_t last_att_us_{0};
-  bool have_mag_{false};
-  bool have_att_{false};
+  mutable HilCounters counters_{};
 };
 
 // A calibrator that never calibrates (the `--calibrator none` choice): the loop outputs with the

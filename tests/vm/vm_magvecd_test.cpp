@@ -295,6 +295,7 @@ void run_once(Run& run) {
     } h{*p, config.calibration.reference_field_nT};
     while (front.rig().step())
       front.poll(h);
+    p->flush();  // as magvecd does when it stops: samples inside the fusion horizon
     run.reference = std::move(sink.out);
   }
 

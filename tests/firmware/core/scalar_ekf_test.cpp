@@ -425,6 +425,8 @@ TEST(ScalarEkf, PoorCoverageIsRefusedAndCounted) {
     EXPECT_EQ(accepted, 0);
     EXPECT_FALSE(ekf.initialised());
     EXPECT_GT(ekf.counters().init_failures, 0u);
+    EXPECT_EQ(ekf.init_report().failure, EkfInitFailure::kUndetermined);
+    EXPECT_NE(ekf.init_report().undetermined & (1U << kEkfBz), 0u);  // nothing along z
     EXPECT_TRUE(ekf.state().allFinite());
     EXPECT_TRUE(ekf.covariance().allFinite());
   }
@@ -432,7 +434,7 @@ TEST(ScalarEkf, PoorCoverageIsRefusedAndCounted) {
 
 TEST(ScalarEkf, SlowlyTurningPlatformInitialisesFromSpreadSamples) {
   // 6000 samples, 2 mrad per sample in heading with a pitching motion: consecutive samples are
-  // close, so the initial fit takes only samples that moved by init_min_step.
+  // close, so the start-up set keeps only the samples that add direction information.
   const auto data = path_readings(
       6000, 0.002,
       [](double a) { return Vec3<double>(std::cos(a), std::sin(a), 0.6 * std::sin(3 * a)); }, 3);
@@ -562,12 +564,13 @@ TEST(ScalarEkf, BiermanAndAgeeTurnerMatchDenseJosephForm) {
     SV h;
     for (int r = 0; r < 3; ++r)
       for (int c = 0; c < 3; ++c)
-        h(3 * r + c) = 2 * y(r) * v(c) + 2 * sig * sig * w(r, c);
+        h(3 * r + c) = 2 * y(r) * v(c) - 2 * sig * sig * w(r, c);
     h.tail<3>() = -2 * w.transpose() * y;
     const Mat3<double> g = w.transpose() * w;
     const double r = 4 * sig * sig * (w.transpose() * y).squaredNorm() +
                      2 * sig * sig * sig * sig * g.squaredNorm();
-    const double pred = y.squaredNorm() + sig * sig * w.squaredNorm();
+    // E|W (m - b)|^2 = |y_true|^2 + sig^2 tr(W^T W): the prediction of F^2 removes the term.
+    const double pred = y.squaredNorm() - sig * sig * w.squaredNorm();
     const double sv = h.dot(p * h) + r;
     const SV k = p * h / sv;
     x += k * (1.0 - pred);
@@ -640,6 +643,235 @@ std::size_t allocations_during_updates() {
 TEST(ScalarEkf, UpdatePathDoesNotAllocate) {
   EXPECT_EQ(allocations_during_updates<double>(), 0u);
   EXPECT_EQ(allocations_during_updates<float>(), 0u);
+}
+
+// ---- debias, noise estimate, start-up by information ----------------------------------------
+
+// Mean over seeds of the calibrated intensity error on the noise-free readings (the simulator's
+// truth), with its standard error. `f_used` is the reference the filter is given.
+struct BiasStat {
+  double mean = 0, se = 0;
+};
+BiasStat intensity_bias(const EkfConfig<double>& cfg, double f_used, int seeds) {
+  const Scenario s;
+  double sum = 0, sum2 = 0;
+  for (int k = 0; k < seeds; ++k) {
+    const Data d = simulate(s, 9000 + static_cast<std::uint64_t>(k));
+    ScalarEkf<double> ekf(cfg);
+    for (const auto& m : d.noisy)
+      ekf.update(m, f_used);
+    double e = 0;
+    for (const auto& m0 : d.clean)
+      e += ekf.intensity_nT(m0) - s.f;
+    e /= static_cast<double>(d.clean.size());
+    sum += e;
+    sum2 += e * e;
+  }
+  const double n = static_cast<double>(seeds);
+  const double mean = sum / n;
+  return {mean, std::sqrt((sum2 / n - mean * mean) / (n - 1))};
+}
+
+TEST(ScalarEkf, DebiasedPredictionLeavesNoMeanIntensityError) {
+  // Ge setup, 200 nT: the noise power sigma^2 tr(W^T W) biases |y|^2 up by sigma^2 tr(G); its
+  // effect on the intensity is sigma^2 tr(G) / (2F) = 1.24 nT.
+  const Scenario s;
+  const Mat3<double> w = s.c.inverse();
+  const double tr_g = (w.transpose() * w).trace();
+  const double bias_nT = s.sigma * s.sigma * tr_g / (2 * s.f);
+  // 400 seeds: a standard error of 0.3 nT, a quarter of the noise-power bias and an eighth of the
+  // opposite sign's. Known limit: at 1600 seeds (SE 0.15 nT) a residual of +0.5 nT shows; it is
+  // the imperfect cancellation of two other O(sigma^2 / F) terms of the scalar model (the weight
+  // 1 / R uses the noisy y: +1.6 nT; the Jacobian at the noisy reading: -1.1 nT), not the debias.
+  constexpr int kSeeds = 400;
+  EkfConfig<double> cfg = default_config<double>(s.sigma);
+  const BiasStat right = intensity_bias(cfg, s.f, kSeeds);
+  EkfConfig<double> est = cfg;
+  est.estimate_noise = true;
+  const BiasStat estimated = intensity_bias(est, s.f, kSeeds);
+  EkfConfig<double> none = cfg;
+  none.debias = false;
+  const BiasStat undebiased = intensity_bias(none, s.f, kSeeds);
+  // The opposite sign (adding the term) solves |y|^2 = F^2 - sigma^2 tr(G); the debiased filter
+  // solves the same equation when given F'^2 = F^2 - 2 sigma^2 tr(G) (G true; the estimate differs
+  // by 1e-3 relative, 0.003 nT here).
+  const BiasStat wrong = intensity_bias(cfg, std::sqrt(s.f * s.f - 2 * bias_nT * 2 * s.f), kSeeds);
+  std::printf(
+      "[ekf-mc] mean intensity error over %d seeds: debiased %.3f +- %.3f nT, noise estimated %.3f "
+      "+- %.3f, no debias %.3f +- %.3f, opposite sign %.3f +- %.3f (expected 0, 0, %.2f, %.2f)\n",
+      kSeeds, right.mean, right.se, estimated.mean, estimated.se, undebiased.mean, undebiased.se,
+      wrong.mean, wrong.se, -bias_nT, -2 * bias_nT);
+  EXPECT_LT(std::abs(right.mean), 3 * right.se);
+  EXPECT_LT(std::abs(estimated.mean), 3 * estimated.se);
+  // The statistic sees the sign error it is meant to catch (the missing term alone, -1.24 nT, is
+  // about 4 standard errors: printed, not asserted).
+  EXPECT_GT(std::abs(wrong.mean), 3 * wrong.se);
+  EXPECT_LT(undebiased.mean, right.mean);
+  EXPECT_NEAR(wrong.mean, -2 * bias_nT, 3 * wrong.se);
+}
+
+TEST(ScalarEkf, NoiseIsEstimatedFromTheData) {
+  // Started with a guess 20x off; the estimate comes from the start-up residuals and innovations.
+  for (const double sigma : {2.0, 200.0}) {
+    Scenario s;
+    s.sigma = sigma;
+    s.n = 3000;
+    int within = 0;
+    for (int k = 0; k < 10; ++k) {
+      const Data d = simulate(s, 4100 + static_cast<std::uint64_t>(k));
+      EkfConfig<double> cfg = default_config<double>(sigma / 20);
+      cfg.estimate_noise = true;
+      ScalarEkf<double> ekf(cfg);
+      for (const auto& m : d.noisy)
+        ekf.update(m, s.f);
+      ASSERT_TRUE(ekf.initialised());
+      const double est = ekf.noise_estimate_nT(), sd = ekf.noise_estimate_sigma_nT();
+      EXPECT_NEAR(ekf.noise_nT(), est, 1e-9 * sigma);  // in use
+      EXPECT_LT(sd, 0.03 * sigma);
+      EXPECT_GT(sd, 0.005 * sigma);
+      EXPECT_LT(std::abs(est - sigma), 4 * sd) << sigma << " seed " << k;
+      within += std::abs(est - sigma) < 2 * sd ? 1 : 0;
+      // The filter is as good as with the noise given.
+      EXPECT_LT(run<double>(s, d, cfg).rmse,
+                1.2 * run<double>(s, d, default_config<double>(sigma)).rmse);
+    }
+    EXPECT_GE(within, 7) << sigma;  // 95 % expected within 2 sigma
+  }
+  // Given noise: used as given, the estimate still reported.
+  Scenario s;
+  const Data d = simulate(s, 4200);
+  ScalarEkf<float> ekf(default_config<float>(10));
+  for (const auto& m : d.noisy)
+    ekf.update(m.cast<float>(), static_cast<float>(s.f));
+  EXPECT_FLOAT_EQ(ekf.noise_nT(), 10.0f);
+  EXPECT_NEAR(ekf.noise_estimate_nT(), s.sigma, 4 * ekf.noise_estimate_sigma_nT());
+}
+
+TEST(ScalarEkf, SpikesDoNotInflateTheNoiseEstimate) {
+  Scenario s;
+  s.spike_fraction = 0.02;
+  s.n = 3000;
+  const Data d = simulate(s, 4300);
+  EkfConfig<double> cfg = default_config<double>(10);
+  cfg.estimate_noise = true;
+  ScalarEkf<double> ekf(cfg);
+  for (const auto& m : d.noisy)
+    ekf.update(m, s.f);
+  ASSERT_TRUE(ekf.initialised());
+  EXPECT_LT(std::abs(ekf.noise_estimate_nT() / s.sigma - 1), 0.06) << ekf.noise_estimate_nT();
+}
+
+// Readings whose direction sweeps a cap of half-angle half_deg about an axis, slowly (100 Hz,
+// the tilt oscillating at 0.06 Hz and the azimuth turning at 0.2 Hz).
+std::vector<Vec3<double>> cap_readings(double half_deg, double sigma, int n, std::uint64_t seed) {
+  const Scenario s;
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<double> nd(0.0, 1.0);
+  const Vec3<double> axis = Vec3<double>(0.3, 0.5, 0.8).normalized();
+  const Vec3<double> e1 = axis.cross(Vec3<double>(1, 0, 0)).normalized();
+  const Vec3<double> e2 = axis.cross(e1);
+  std::vector<Vec3<double>> out;
+  for (int i = 0; i < n; ++i) {
+    const double t = 0.01 * i;
+    const double th = deg_to_rad(half_deg) * std::abs(std::sin(0.37 * t)), ph = 1.3 * t;
+    const Vec3<double> u =
+        std::cos(th) * axis + std::sin(th) * (std::cos(ph) * e1 + std::sin(ph) * e2);
+    out.push_back(s.c * (s.f * u) + s.b + sigma * Vec3<double>(nd(rng), nd(rng), nd(rng)));
+  }
+  return out;
+}
+
+TEST(ScalarEkf, StartUpSetIsChosenByInformation) {
+  // A slowly swept hemisphere: consecutive samples are nearly equal; the start-up set keeps the
+  // informative ones (exchanging members as the sweep goes on) and the filter starts once the fit
+  // is determined.
+  const Scenario s;
+  const auto data = cap_readings(90, s.sigma, 20000, 11);
+  EkfConfig<double> cfg = default_config<double>(s.sigma);
+  ScalarEkf<double> ekf(cfg);
+  int accepted = 0, tried = 0;
+  for (const auto& m : data) {
+    const EkfStatus st = ekf.update(m, kF);
+    accepted += st == EkfStatus::kAccepted ? 1 : 0;
+    tried += st == EkfStatus::kInitFailed || st == EkfStatus::kInitialised ? 1 : 0;
+  }
+  ASSERT_TRUE(ekf.initialised());
+  const EkfCounters& c = ekf.counters();
+  EXPECT_GT(c.init_exchanges, 0u);
+  EXPECT_EQ(c.init_attempts, static_cast<std::uint32_t>(tried));
+  EXPECT_EQ(c.init_failures + 1, c.init_attempts);
+  EXPECT_EQ(c.updates, static_cast<std::uint32_t>(accepted));
+  EXPECT_GT(accepted, 10000);
+  const Vec3<double> err = ekf.offset_nT() - s.b;
+  const Vec3<double> sd = ekf.sigma().tail<3>();
+  for (int k = 0; k < 3; ++k)
+    EXPECT_LT(std::abs(err(k)), 4 * sd(k)) << k;
+}
+
+TEST(ScalarEkf, NarrowCapNamesTheUndeterminedParameters) {
+  // 30 deg of direction spread (half-angle 15 deg), even at 1 nT: the offset along the cap and
+  // the scales are not determined. The filter does not start and says which states lack
+  // information; every try is counted.
+  for (const double sigma : {1.0, 200.0}) {
+    const auto data = cap_readings(15, sigma, 20000, 12);
+    EkfConfig<double> cfg = default_config<double>(10);
+    cfg.estimate_noise = true;
+    ScalarEkf<double> ekf(cfg);
+    int failed = 0;
+    for (const auto& m : data)
+      failed += ekf.update(m, kF) == EkfStatus::kInitFailed ? 1 : 0;
+    EXPECT_GT(failed, 0);
+    EXPECT_EQ(ekf.counters().init_failures, static_cast<std::uint32_t>(failed));
+    // At the end of the data: one more try if the set changed since the last.
+    EXPECT_FALSE(ekf.try_start());
+    EXPECT_FALSE(ekf.initialised());
+    EXPECT_LE(ekf.counters().init_failures, static_cast<std::uint32_t>(failed) + 1);
+    EXPECT_EQ(ekf.counters().init_attempts, ekf.counters().init_failures);
+    const auto& r = ekf.init_report();
+    EXPECT_EQ(r.failure, EkfInitFailure::kUndetermined) << sigma;
+    EXPECT_EQ(r.samples, cfg.init_samples);
+    EXPECT_EQ(ekf.counters().updates, 0u);
+    // Offsets are among the undetermined states, and their bits agree with the sigmas.
+    EXPECT_NE(r.undetermined & (7U << kEkfBx), 0u) << std::hex << r.undetermined;
+    for (int k = 0; k < kEkfStateDim; ++k)
+      EXPECT_EQ((r.undetermined >> k) & 1U, r.relative_sigma(k) > cfg.init_max_sigma ? 1U : 0U);
+  }
+}
+
+TEST(ScalarEkf, TryStartFitsAShortRecording) {
+  const Scenario s;
+  const Data d = simulate(s, 77);
+  ScalarEkf<double> few(default_config<double>(s.sigma));
+  for (int i = 0; i < 12; ++i)
+    few.update(d.noisy[static_cast<std::size_t>(i)], kF);
+  EXPECT_FALSE(few.try_start());
+  EXPECT_EQ(few.init_report().failure, EkfInitFailure::kTooFewSamples);
+  EXPECT_EQ(few.counters().init_attempts, 0u);
+  ScalarEkf<double> ekf(default_config<double>(s.sigma));
+  for (int i = 0; i < 40; ++i)
+    EXPECT_EQ(ekf.update(d.noisy[static_cast<std::size_t>(i)], kF), EkfStatus::kCollecting);
+  EXPECT_TRUE(ekf.try_start());
+  EXPECT_EQ(ekf.counters().init_attempts, 1u);
+  EXPECT_LT((ekf.offset_nT() - s.b).norm(), 5 * ekf.sigma().tail<3>().norm());
+}
+
+TEST(ScalarEkf, ReadingsOffAnEllipsoidAreNamedSo) {
+  // Directions spread over the sphere but |m| varying as on a hyperboloid x^2 + y^2 - z^2 = F^2:
+  // the set determines every parameter, and the quadric is not an ellipsoid.
+  std::mt19937_64 rng(5);
+  std::normal_distribution<double> nd(0.0, 1.0);
+  ScalarEkf<double> ekf(default_config<double>(200));
+  for (int i = 0; i < 400; ++i) {
+    const double a = 2 * kPi<double> * (i * 0.618034 - std::floor(i * 0.618034));
+    const double zt = 0.9 * std::sin(0.37 * i);
+    const Vec3<double> m(kF * std::cosh(zt) * std::cos(a), kF * std::cosh(zt) * std::sin(a),
+                         kF * std::sinh(zt));
+    ekf.update(m + 200 * Vec3<double>(nd(rng), nd(rng), nd(rng)), kF);
+  }
+  EXPECT_FALSE(ekf.initialised());
+  EXPECT_GT(ekf.counters().init_failures, 0u);
+  EXPECT_EQ(ekf.init_report().failure, EkfInitFailure::kNotAnEllipsoid)
+      << std::hex << ekf.init_report().undetermined;
 }
 
 }  // namespace

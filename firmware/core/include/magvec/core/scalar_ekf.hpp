@@ -4,18 +4,33 @@
 //   noise. Measurement (eq. 17-21, ERRATA 002-1): h(x) = |C^-1 (m - b)|^2 against z = F_ref^2, with
 //   the exact Jacobian dh/d(C^-1)_rc = 2 y_r v_c, dh/db = -2 C^-T y (v = m - b, y = C^-1 v); the
 //   printed eq. (25) is wrong and not used.
+// Noise bias: the reading m carries the noise, F_ref does not. For m = m_true + n, n ~ N(0, s^2 I),
+// E|W (m - b)|^2 = F^2 + s^2 tr(W^T W), so the prediction of z = F^2 from the noisy m is
+// h = |y|^2 - s^2 tr(W^T W) (debias). Adding the term instead doubles the bias it should remove.
 // Numerics: the covariance is held as P = U D U^T (U unit upper triangular, D > 0) and updated with
 // Bierman's scalar measurement update and the Agee-Turner rank-one update for diagonal process
 // noise, both O(n^2) and symmetric positive definite by construction, which keeps float32 usable.
 // Fields are divided by a reference magnitude s (the first reference total field unless configured)
 // so that every state is O(1) in float32 (ERRATA 002-5); the interface is in nT.
-// One-pass convergence (ERRATA 002-3): by default the filter starts from a fit of the first N
+// One-pass convergence (ERRATA 002-3): by default the filter starts from a fit of a start-up set of
 // samples (an algebraic quadric least-squares fit, outlier screening, then Gauss-Newton on the
 // exact model over those samples); P0 is the inverse information of those samples, so no data is
-// wasted and the filter continues as a recursive Gauss-Newton from there. `EkfConfig::paper()`
-// reproduces the printed x0/P0/Q/R (with gate and divergence detection off) so the paper's setup
-// can be rerun. Note for later deduplication: the algebraic quadric fit in scalar_ekf_detail
-// overlaps with the batch EllipsoidFit module; it is kept here small and self-contained on purpose.
+// wasted and the filter continues as a recursive Gauss-Newton from there.
+// Start-up by information: the start-up set is a bounded, well-spread subset of the samples seen so
+// far, kept by a D-optimal exchange on the quadric features of the field directions (a sample
+// enters if it adds information, and replaces the member whose exchange raises the determinant of
+// the set's information most). The fit is tried when the set is full, then again whenever its
+// information has grown by init_retry_gain per dimension; a failed try keeps the set and records
+// why (init_report(): which parameters the set does not determine, or not an ellipsoid).
+// Noise from the data: the magnetometer noise is estimated from the start-up fit's residuals
+// (robust scale) and then from the innovations (winsorised, with the parameter part of the
+// innovation variance removed), per window of nis_window samples, discarding windows that ended in
+// a detected divergence. With estimate_noise the estimate is used for weighting, debias and
+// gating; otherwise noise_sigma_nT is used and the estimate is only reported.
+// `EkfConfig::paper()` reproduces the printed x0/P0/Q/R (with gate and divergence detection off) so
+// the paper's setup can be rerun. Note for later deduplication: the algebraic quadric fit in
+// scalar_ekf_detail overlaps with the batch EllipsoidFit module; it is kept here small and
+// self-contained on purpose.
 #pragma once
 
 #include <Eigen/Cholesky>
@@ -59,7 +74,7 @@ enum class EkfStatus : std::uint8_t {
   kAccepted,     // measurement update applied
   kCollecting,   // buffered for the initial fit
   kInitialised,  // this sample completed the initial fit; the filter is now running
-  kInitFailed,   // the initial fit failed (poor coverage or not an ellipsoid); collecting again
+  kInitFailed,   // an initial fit was tried and failed (init_report() says why); collecting on
   kGated,        // innovation outside the gate: rejected and counted
   kRejectedNonFinite,     // NaN/inf in the magnetometer sample: rejected, state untouched
   kRejectedBadReference,  // reference field not finite or not positive: rejected, state untouched
@@ -75,6 +90,15 @@ enum class EkfResetReason : std::uint8_t {
   kSingularModel,          // C^-1 became (numerically) singular
 };
 
+// Why the last initial fit failed (EkfInitReport::failure).
+enum class EkfInitFailure : std::uint8_t {
+  kNone,
+  kTooFewSamples,   // fewer than init_min_samples in the start-up set
+  kUndetermined,    // the set does not determine some parameters (EkfInitReport::undetermined)
+  kNotAnEllipsoid,  // the parameters are determined but the readings are not on an ellipsoid
+  kNotConverged,    // the Gauss-Newton refinement did not settle
+};
+
 struct EkfCounters {
   std::uint32_t updates = 0;             // accepted measurement updates
   std::uint32_t gated = 0;               // rejected by the innovation gate
@@ -82,7 +106,9 @@ struct EkfCounters {
   std::uint32_t rejected_reference = 0;  // unusable reference field values
   std::uint32_t reinitialisations = 0;   // automatic restarts after detected divergence
   std::uint32_t init_outliers = 0;       // samples dropped by the initial fit's screening
-  std::uint32_t init_failures = 0;       // initial fits that failed and restarted collection
+  std::uint32_t init_attempts = 0;       // initial fits tried
+  std::uint32_t init_failures = 0;       // initial fits that failed (collection goes on)
+  std::uint32_t init_exchanges = 0;      // start-up set members replaced by better-spread samples
 };
 
 template <typename Scalar>
@@ -96,10 +122,13 @@ struct EkfConfig {
   Scalar field_scale_nT{0};
   // Measurement noise: z = F^2 has variance 4 sigma^2 |C^-T y|^2 (+ reference noise (2 F
   // sigma_F)^2) evaluated per sample, unless r_fixed_nT4 > 0 (the paper's constant R).
+  // noise_sigma_nT is the magnetometer noise per axis (1-sigma); with estimate_noise it is only the
+  // guess used until the data give an estimate (the start-up fit's residuals, then innovations).
   Scalar noise_sigma_nT{10};
+  bool estimate_noise = false;
   Scalar reference_sigma_nT{0};
   Scalar r_fixed_nT4{0};
-  // Predict E[h] = |y|^2 + sigma^2 tr(C^-T C^-1) (removes the noise-power bias of |m - b|^2).
+  // Predict E[z] = |y|^2 - sigma^2 tr(C^-T C^-1): the noise power of the reading m inflates |y|^2.
   bool debias = true;
   // kGiven start: x0 and P0 in interface units (C^-1 dimensionless, b in nT, P0_b in nT^2).
   Mat3<Scalar> w0 = Mat3<Scalar>::Identity();
@@ -108,14 +137,16 @@ struct EkfConfig {
   // Process noise per update (diagonal, interface units). q(9..11) on b tracks slow offset drift.
   Vec<Scalar, kN> q = Vec<Scalar, kN>::Zero();
   int iterations = 1;  // > 1: iterated EKF (relinearise the measurement about the updated state)
-  // Initial quadric fit (kQuadricFit).
-  int init_samples = 64;  // <= the filter's init capacity
+  // Initial quadric fit (kQuadricFit) over the start-up set (see the header comment).
+  int init_samples = 64;      // size of the start-up set (<= the filter's init capacity)
+  int init_min_samples = 20;  // fewest samples try_start() fits (>= 16)
   int init_gauss_newton_iterations = 4;
-  // A sample enters the initial fit only if it differs from the last one taken by this fraction of
-  // the reference field, so a slowly turning platform still gets a spread set (others are skipped).
-  Scalar init_min_step{Scalar(0.2)};
-  // The initial fit is refused (poor coverage) if any predicted 1-sigma exceeds this fraction of
-  // the field scale (C^-1 elements are dimensionless, b relative to the scale).
+  // After a failed fit, try again once the set's information (det^(1/9) of its direction
+  // features) has grown by this factor.
+  Scalar init_retry_gain{Scalar(1.25)};
+  // The initial fit is refused (parameters undetermined) if any predicted 1-sigma exceeds this
+  // fraction of the field scale (C^-1 elements are dimensionless, b relative to the scale); the
+  // same figure as AcceptanceLimits::max_relative_sigma.
   Scalar init_max_sigma{Scalar(0.02)};
   // Innovation gate on NIS = nu^2 / S (chi-square, 1 dof); <= 0 disables. 25 = 5 sigma.
   Scalar gate_nis{25};
@@ -240,6 +271,20 @@ class QuadricAccumulator {
 
 }  // namespace scalar_ekf_detail
 
+// Outcome of the last initial-fit try (ScalarEkf::init_report()).
+template <typename Scalar>
+struct EkfInitReport {
+  EkfInitFailure failure = EkfInitFailure::kNone;
+  // Bit k set: state k (kEkfW00..kEkfBz) has a predicted 1-sigma above init_max_sigma.
+  std::uint32_t undetermined = 0;
+  // Predicted 1-sigma of every state relative to its natural size (C^-1 elements: 1; b: the
+  // reference field), from the fit, or from the set's information about a nominal sphere when no
+  // ellipsoid could be fitted. NaN before any try.
+  Vec<Scalar, kEkfStateDim> relative_sigma =
+      Vec<Scalar, kEkfStateDim>::Constant(std::numeric_limits<Scalar>::quiet_NaN());
+  int samples = 0;  // size of the start-up set at the try
+};
+
 template <typename Scalar, int kInitCapacity = 64>
 class ScalarEkf {
   static_assert(CoreScalar<Scalar>);
@@ -250,31 +295,51 @@ class ScalarEkf {
   using StateVec = Vec<Scalar, kN>;
   using StateMat = Mat<Scalar, kN, kN>;
   using Config = EkfConfig<Scalar>;
+  using InitReport = EkfInitReport<Scalar>;
 
   explicit ScalarEkf(const Config& config = Config{}) noexcept { configure(config); }
 
-  // Replaces the configuration and restarts the filter; counters are cleared.
+  // Replaces the configuration and restarts the filter; counters and the noise estimate are
+  // cleared.
   void configure(const Config& config) noexcept {
     cfg_ = config;
     cfg_.init_samples = std::clamp(cfg_.init_samples, 16, kInitCapacity);
+    cfg_.init_min_samples = std::clamp(cfg_.init_min_samples, 16, cfg_.init_samples);
     cfg_.iterations = std::max(cfg_.iterations, 1);
     cfg_.nis_window = std::max(cfg_.nis_window, 10);
     counters_ = EkfCounters{};
     last_reset_ = EkfResetReason::kNone;
+    report_ = InitReport{};
     scale_ = 0;
+    sigma_ = 0;
+    noise_prior_var_ = 0;
+    noise_prior_n_ = 0;
+    noise_n_ = 0;
+    noise_mean_ = 0;
+    noise_m2_ = 0;
     use_fit_ = cfg_.init_mode == EkfInitMode::kQuadricFit;
     x_.setZero();
     x_.template head<9>() = flatten(cfg_.w0);
     restart();
   }
 
-  // Restarts estimation (new initial fit or the configured start); keeps counters and scale.
+  // Restarts estimation (new initial fit or the configured start); keeps counters, scale and the
+  // noise estimate.
   void restart() noexcept {
     initialised_ = false;
     n_buf_ = 0;
+    feat_info_.setZero();
+    feat_dirty_ = true;
+    lev_dirty_ = true;
+    tried_ = false;
+    changed_since_try_ = false;
+    logdet_at_try_ = 0;
     window_n_ = 0;
     window_gated_ = 0;
     window_nis_sum_ = 0;
+    window_noise_n_ = 0;
+    window_noise_sum_ = 0;
+    window_noise_sum2_ = 0;
     last_nis_ = 0;
     // Until a start exists the covariance is "unknown" (unit variance in normalised units); the
     // last state estimate is kept so model() still returns the best known calibration.
@@ -300,6 +365,7 @@ class ScalarEkf {
     }
     if (!(scale_ > 0)) {
       scale_ = cfg_.field_scale_nT > 0 ? cfg_.field_scale_nT : f_ref_nT;
+      sigma_ = cfg_.noise_sigma_nT / scale_;
       restart();
     }
     const Vec3<Scalar> m = m_nT / scale_;
@@ -308,24 +374,22 @@ class ScalarEkf {
       ++counters_.rejected_nonfinite;
       return EkfStatus::kRejectedNonFinite;
     }
-    const Scalar z = fn * fn;
-    if (!initialised_) {
-      if (n_buf_ > 0 && (m - buf_m_.col(n_buf_ - 1)).norm() < cfg_.init_min_step * fn) {
-        return EkfStatus::kCollecting;
-      }
-      buf_m_.col(n_buf_) = m;
-      buf_f_(n_buf_) = fn;
-      ++n_buf_;
-      if (n_buf_ < cfg_.init_samples) return EkfStatus::kCollecting;
-      if (solve_initial_fit()) {
-        initialised_ = true;
-        return EkfStatus::kInitialised;
-      }
-      ++counters_.init_failures;
-      n_buf_ = 0;
-      return EkfStatus::kInitFailed;
+    if (!initialised_) return collect(m, fn);
+    return filter_step(m, fn, fn * fn);
+  }
+
+  // Tries the initial fit now with the start-up set as it is (at least init_min_samples), e.g. at
+  // the end of a recording shorter than the set. True when the filter is running.
+  bool try_start() noexcept {
+    if (initialised_ || !use_fit_) return initialised_;
+    if (n_buf_ < cfg_.init_min_samples) {
+      report_ = InitReport{};
+      report_.failure = EkfInitFailure::kTooFewSamples;
+      report_.samples = n_buf_;
+      return false;
     }
-    return filter_step(m, fn, z);
+    if (tried_ && !changed_since_try_) return false;
+    return attempt_fit();
   }
 
   bool initialised() const noexcept { return initialised_; }
@@ -335,6 +399,29 @@ class ScalarEkf {
   Scalar field_scale_nT() const noexcept { return scale_; }
   // Normalised innovation squared of the last processed (accepted or gated) sample.
   Scalar last_nis() const noexcept { return last_nis_; }
+  // The last initial-fit try and the current size of the start-up set.
+  const InitReport& init_report() const noexcept { return report_; }
+  int startup_samples() const noexcept { return n_buf_; }
+
+  // Magnetometer noise per axis [nT] the filter uses (the estimate with estimate_noise).
+  Scalar noise_nT() const noexcept { return sigma_ * scale_or_one(); }
+  // The data's estimate of that noise and its 1-sigma [nT]; NaN until a start-up fit or innovations
+  // gave one.
+  Scalar noise_estimate_nT() const noexcept {
+    const Scalar v = noise_var();
+    return v > 0 ? std::sqrt(v) * scale_or_one() : std::numeric_limits<Scalar>::quiet_NaN();
+  }
+  Scalar noise_estimate_sigma_nT() const noexcept {
+    const Scalar v = noise_var();
+    const Scalar n = noise_prior_n_ + noise_n_;
+    if (!(v > 0 && n > 0)) return std::numeric_limits<Scalar>::quiet_NaN();
+    // Var of the combined mean of per-sample variance terms: the start-up fit's share at the
+    // Gaussian per-term variance of the winsorised estimator, the innovations' at their own.
+    const Scalar var_v = (kTermVariance * v * v * noise_prior_n_ + noise_m2_) / (n * n);
+    return std::sqrt(var_v) / (Scalar(2) * std::sqrt(v)) * scale_or_one();
+  }
+  // Number of innovations behind the noise estimate (without the start-up fit's share).
+  Scalar noise_estimate_samples() const noexcept { return noise_n_; }
 
   Mat3<Scalar> c_inv() const noexcept { return unflatten(x_.template head<9>()); }
   Vec3<Scalar> offset_nT() const noexcept { return x_.template tail<3>() * scale_or_one(); }
@@ -385,6 +472,18 @@ class ScalarEkf {
   }
 
  private:
+  using Features = Vec<Scalar, 9>;
+  using FeatureMat = Mat<Scalar, 9, 9>;
+  // Winsorising the innovations at kNoiseClip standard deviations keeps spikes from inflating the
+  // noise estimate; for Gaussian innovations E[min(x^2, c^2)] = kNoiseClipMean (c = 2.5) and the
+  // per-term variance of the estimator is kTermVariance sigma^4.
+  static constexpr Scalar kNoiseClip2 = Scalar(6.25);
+  static constexpr Scalar kNoiseClipMean = Scalar(0.97757);
+  static constexpr Scalar kTermVariance = Scalar(1.76);
+  // Share of a MAD-based start-up estimate from n residuals, in innovation terms (its efficiency
+  // relative to the winsorised estimator: (0.663 / 1.167)^2).
+  static constexpr Scalar kMadShare = Scalar(0.32);
+
   static StateVec flatten_state(const Mat3<Scalar>& w, const Vec3<Scalar>& b) noexcept {
     StateVec x;
     x.template head<9>() = flatten(w);
@@ -412,22 +511,43 @@ class ScalarEkf {
     return t;
   }
 
-  // dh/dx with v = m - b, y = W v; debias adds d(sigma^2 tr(W^T W))/dW = 2 sigma^2 W.
+  // Combined noise variance estimate (normalised units); 0 when there is none.
+  Scalar noise_var() const noexcept {
+    const Scalar n = noise_prior_n_ + noise_n_;
+    if (!(n > 0)) return Scalar(0);
+    const Scalar v = (noise_prior_n_ * noise_prior_var_ + noise_n_ * noise_mean_) / n;
+    return v > 0 ? v : Scalar(0);
+  }
+  // Smallest usable noise: a noise-free recording must not make R zero.
+  Scalar sigma_floor() const noexcept {
+    return Scalar(16) * std::numeric_limits<Scalar>::epsilon();
+  }
+  void use_noise_estimate() noexcept {
+    if (!cfg_.estimate_noise) return;
+    const Scalar v = noise_var();
+    if (v > 0) sigma_ = std::max(std::sqrt(v), sigma_floor());
+  }
+
+  // dh/dx with v = m - b, y = W v; debias subtracts sigma^2 tr(W^T W), whose derivative is
+  // 2 sigma^2 W.
   StateVec jacobian(const Vec3<Scalar>& y, const Vec3<Scalar>& v,
                     Scalar sigma2_debias) const noexcept {
     StateVec h;
     for (int r = 0; r < 3; ++r)
       for (int c = 0; c < 3; ++c)
         h(ekf_w_index(r, c)) =
-            Scalar(2) * y(r) * v(c) + Scalar(2) * sigma2_debias * x_(ekf_w_index(r, c));
+            Scalar(2) * y(r) * v(c) - Scalar(2) * sigma2_debias * x_(ekf_w_index(r, c));
     h.template tail<3>() = Scalar(-2) * (c_inv().transpose() * y);
     return h;
   }
 
   struct Linearisation {
     StateVec h_row = StateVec::Zero();
-    Scalar h{0};  // predicted measurement
-    Scalar r{0};  // measurement variance
+    Scalar h{0};      // predicted measurement
+    Scalar r{0};      // measurement variance
+    Scalar a{0};      // |C^-T y|^2: r = 4 sigma^2 a + 2 sigma^4 g2 + r_ref
+    Scalar g2{0};     // |C^-T C^-1|_F^2
+    Scalar r_ref{0};  // reference-field part of r
   };
   // Measurement model at the current state for normalised m and F (fn).
   Linearisation linearise(const Vec3<Scalar>& m, Scalar fn) const noexcept {
@@ -435,19 +555,20 @@ class ScalarEkf {
     const Mat3<Scalar> w = c_inv();
     const Vec3<Scalar> v = m - x_.template tail<3>();
     const Vec3<Scalar> y = w * v;
-    const Scalar sig = cfg_.noise_sigma_nT / s;
-    const Scalar sig2 = sig * sig;
+    const Scalar sig2 = sigma_ * sigma_;
     const Scalar deb = cfg_.debias ? sig2 : Scalar(0);
     Linearisation l;
     l.h_row = jacobian(y, v, deb);
-    l.h = y.squaredNorm() + deb * w.squaredNorm();
+    l.h = y.squaredNorm() - deb * w.squaredNorm();
+    const Mat3<Scalar> g = w.transpose() * w;
+    const Scalar sf = cfg_.reference_sigma_nT / s;
+    l.a = (w.transpose() * y).squaredNorm();
+    l.g2 = g.squaredNorm();
+    l.r_ref = Scalar(4) * fn * fn * sf * sf;
     if (cfg_.r_fixed_nT4 > 0) {
       l.r = cfg_.r_fixed_nT4 / (s * s * s * s);
     } else {
-      const Mat3<Scalar> g = w.transpose() * w;
-      const Scalar sf = cfg_.reference_sigma_nT / s;
-      l.r = Scalar(4) * sig2 * (w.transpose() * y).squaredNorm() +
-            Scalar(2) * sig2 * sig2 * g.squaredNorm() + Scalar(4) * fn * fn * sf * sf;
+      l.r = Scalar(4) * sig2 * l.a + Scalar(2) * sig2 * sig2 * l.g2 + l.r_ref;
     }
     return l;
   }
@@ -464,7 +585,7 @@ class ScalarEkf {
   // All of U finite. Only the strict upper triangle can change (the diagonal stays 1, the lower
   // triangle 0: Bierman, Agee-Turner and ud_factorise write i < j only), and v * 0 is 0 for a
   // finite v but NaN for inf/NaN: an exact test at one multiply-add per element, a third of the
-  // cost of allFinite() over all 144 elements on the per-sample path (issue 8 budget).
+  // cost of allFinite() over all 144 elements on the per-sample path.
   bool u_upper_finite() const noexcept {
     Scalar probe{0};
     for (int j = 1; j < kN; ++j)
@@ -529,6 +650,39 @@ class ScalarEkf {
     *s_out = alpha;
   }
 
+  // ---- noise estimate from the innovations -----------------------------------------------------
+  // nu = z - h with variance hph + r: (nu^2 winsorised at kNoiseClip sigma of the current estimate,
+  // corrected for the clipping) - hph - the non-magnetometer part, per unit 4 a, estimates sigma^2.
+  void note_innovation(Scalar nu, Scalar hph, const Linearisation& l) noexcept {
+    const Scalar v = noise_var() > 0 ? noise_var() : sigma_ * sigma_;
+    if (!(l.a > 0 && v > 0)) return;
+    const Scalar r_hat = Scalar(4) * v * l.a + Scalar(2) * v * v * l.g2 + l.r_ref;
+    const Scalar nu2 = std::min(nu * nu, kNoiseClip2 * (hph + r_hat));
+    const Scalar t =
+        (nu2 / kNoiseClipMean - hph - l.r_ref - Scalar(2) * v * v * l.g2) / (Scalar(4) * l.a);
+    if (!std::isfinite(t)) return;
+    window_noise_sum_ += t;
+    window_noise_sum2_ += t * t;
+    ++window_noise_n_;
+  }
+  // Merges the window's terms (Chan et al. pairwise update of mean and M2).
+  void merge_noise_window() noexcept {
+    const Scalar nb = static_cast<Scalar>(window_noise_n_);
+    if (window_noise_n_ > 0) {
+      const Scalar mean_b = window_noise_sum_ / nb;
+      const Scalar m2_b = std::max(window_noise_sum2_ - window_noise_sum_ * mean_b, Scalar(0));
+      const Scalar n = noise_n_ + nb;
+      const Scalar delta = mean_b - noise_mean_;
+      noise_mean_ += delta * nb / n;
+      noise_m2_ += m2_b + delta * delta * noise_n_ * nb / n;
+      noise_n_ = n;
+      use_noise_estimate();
+    }
+    window_noise_n_ = 0;
+    window_noise_sum_ = 0;
+    window_noise_sum2_ = 0;
+  }
+
   // ---- the filter step ---------------------------------------------------------------------
   EkfStatus filter_step(const Vec3<Scalar>& m, Scalar fn, Scalar z) noexcept {
     const Linearisation l0 = linearise(m, fn);
@@ -543,10 +697,12 @@ class ScalarEkf {
       if (qk > 0) add_diagonal_noise(k, qk);
     }
     const StateVec f0 = ut_times(l0.h_row);
-    const Scalar s0 = l0.r + f0.dot(d_.cwiseProduct(f0));
+    const Scalar hph = f0.dot(d_.cwiseProduct(f0));
+    const Scalar s0 = l0.r + hph;
     const Scalar nu0 = z - l0.h;
     if (!(std::isfinite(s0) && s0 > 0 && std::isfinite(nu0)))
       return reinitialise(EkfResetReason::kNonFiniteState);
+    note_innovation(nu0, hph, l0);
     last_nis_ = nu0 * nu0 / s0;
     if (cfg_.gate_nis > 0 && last_nis_ > cfg_.gate_nis) {
       ++counters_.gated;
@@ -597,10 +753,13 @@ class ScalarEkf {
     window_n_ = 0;
     window_gated_ = 0;
     window_nis_sum_ = 0;
-    if (!cfg_.divergence_detection) return status;
-    if (gated_fraction > cfg_.gated_fraction_limit)
-      return reinitialise(EkfResetReason::kTooManyGated);
-    if (mean_nis > cfg_.nis_mean_limit) return reinitialise(EkfResetReason::kNisTooHigh);
+    if (cfg_.divergence_detection) {
+      if (gated_fraction > cfg_.gated_fraction_limit)
+        return reinitialise(EkfResetReason::kTooManyGated);
+      if (mean_nis > cfg_.nis_mean_limit) return reinitialise(EkfResetReason::kNisTooHigh);
+    }
+    // A window that did not end in a divergence contributes to the noise estimate.
+    merge_noise_window();
     return status;
   }
 
@@ -613,7 +772,117 @@ class ScalarEkf {
     return EkfStatus::kReinitialised;
   }
 
-  // ---- initial fit over the buffered samples -----------------------------------------------
+  // ---- start-up set: D-optimal exchange on direction features --------------------------------
+  // Quadric features of the unit direction u of a reading: the parameters of the exact model at a
+  // sphere (W ~ I) see a sample through u u^T and u, so these 9 carry its information about the
+  // shape and centre; a radial outlier adds nothing (directions only).
+  static Features features(const Vec3<Scalar>& u) noexcept {
+    Features f;
+    f << u(0) * u(0), u(1) * u(1), u(2) * u(2), u(0) * u(1), u(0) * u(2), u(1) * u(2), u(0), u(1),
+        u(2);
+    return f;
+  }
+  Features buffered_features(int j) const noexcept {
+    return features(buf_m_.col(j) / buf_m_.col(j).norm());
+  }
+  // Factorises the set's information (ridge for sets of fewer than 9 directions) and updates the
+  // log-determinant.
+  void refactor_features() noexcept {
+    if (!feat_dirty_) return;
+    // Directions closer than ~0.5 deg to the set's span add nothing (the ridge is the information
+    // of a feature resolution of 1e-2), so a slow platform does not fill the set with near-copies.
+    const Scalar ridge = Scalar(1e-4);
+    FeatureMat a = feat_info_;
+    a.diagonal().array() += ridge;
+    feat_ldlt_.compute(a);
+    Scalar logdet{0};
+    const auto dvec = feat_ldlt_.vectorD();
+    for (int i = 0; i < 9; ++i)
+      logdet += std::log(std::max(dvec(i), ridge));
+    feat_logdet_ = logdet;
+    feat_dirty_ = false;
+    lev_dirty_ = true;
+  }
+  void refresh_leverages() noexcept {
+    refactor_features();
+    if (!lev_dirty_) return;
+    for (int j = 0; j < n_buf_; ++j) {
+      const Features f = buffered_features(j);
+      const Features g = feat_ldlt_.solve(f);
+      lev_(j) = f.dot(g);
+    }
+    lev_dirty_ = false;
+  }
+  void store(int j, const Vec3<Scalar>& m, Scalar fn) noexcept {
+    buf_m_.col(j) = m;
+    buf_f_(j) = fn;
+  }
+
+  EkfStatus collect(const Vec3<Scalar>& m, Scalar fn) noexcept {
+    const Scalar norm = m.norm();
+    if (!(norm > 0)) return EkfStatus::kCollecting;
+    const Features f = features(m / norm);
+    refactor_features();
+    const Features g = feat_ldlt_.solve(f);
+    const Scalar dx = f.dot(g);  // leverage: det grows by (1 + dx) if the sample is added
+    if (n_buf_ < cfg_.init_samples) {
+      // An average member of a set of n in 9 dimensions has leverage 9 / n: take samples that add
+      // at least half that, so a still platform does not fill the set with copies.
+      if (!(dx > Scalar(4.5) / static_cast<Scalar>(cfg_.init_samples)))
+        return EkfStatus::kCollecting;
+      store(n_buf_, m, fn);
+      ++n_buf_;
+      feat_info_.template selfadjointView<Eigen::Lower>().rankUpdate(f);
+      feat_dirty_ = true;
+      changed_since_try_ = true;
+    } else {
+      // Fedorov exchange: replacing member j by the sample multiplies det by
+      // (1 + dx)(1 - d_j) + (g . f_j)^2.
+      refresh_leverages();
+      int best = -1;
+      Scalar best_gain = Scalar(0.02);  // ignore marginal exchanges (churn)
+      for (int j = 0; j < n_buf_; ++j) {
+        const Features fj = buffered_features(j);
+        const Scalar dxj = g.dot(fj);
+        const Scalar gain = (Scalar(1) + dx) * (Scalar(1) - lev_(j)) + dxj * dxj - Scalar(1);
+        if (gain > best_gain) {
+          best_gain = gain;
+          best = j;
+        }
+      }
+      if (best < 0) return EkfStatus::kCollecting;
+      const Features old = buffered_features(best);
+      feat_info_.template selfadjointView<Eigen::Lower>().rankUpdate(old, Scalar(-1));
+      feat_info_.template selfadjointView<Eigen::Lower>().rankUpdate(f);
+      store(best, m, fn);
+      feat_dirty_ = true;
+      changed_since_try_ = true;
+      ++counters_.init_exchanges;
+    }
+    if (n_buf_ < cfg_.init_samples) return EkfStatus::kCollecting;
+    refactor_features();
+    const Scalar retry = Scalar(9) * std::log(std::max(cfg_.init_retry_gain, Scalar(1)));
+    if (tried_ && !(feat_logdet_ >= logdet_at_try_ + retry)) return EkfStatus::kCollecting;
+    if (attempt_fit()) return EkfStatus::kInitialised;
+    return EkfStatus::kInitFailed;
+  }
+
+  bool attempt_fit() noexcept {
+    refactor_features();
+    tried_ = true;
+    changed_since_try_ = false;
+    logdet_at_try_ = feat_logdet_;
+    ++counters_.init_attempts;
+    if (solve_initial_fit()) {
+      initialised_ = true;
+      use_noise_estimate();
+      return true;
+    }
+    ++counters_.init_failures;
+    return false;
+  }
+
+  // ---- initial fit over the start-up set ---------------------------------------------------
   bool algebraic_fit(const Vec3<Scalar>& center) noexcept {
     scalar_ekf_detail::QuadricAccumulator<Scalar> acc;
     acc.clear();
@@ -667,21 +936,51 @@ class ScalarEkf {
     return dropped;
   }
 
-  Scalar median_abs_normalised_residual() const noexcept {
+  // Median over the used samples of |residual| / sqrt(R) (normalised = true) or of the residual in
+  // per-axis reading units, |residual| / (2 |C^-T y|), whose scale is the noise (false).
+  Scalar median_abs_residual(bool normalised, int* count = nullptr) const noexcept {
     Vec<Scalar, kInitCapacity> e;
     int n = 0;
     for (int i = 0; i < n_buf_; ++i) {
       if (!(used_(i) > 0)) continue;
       const Linearisation l = linearise(buf_m_.col(i), buf_f_(i));
-      e(n++) = std::abs(buf_f_(i) * buf_f_(i) - l.h) / std::sqrt(l.r);
+      const Scalar res = std::abs(buf_f_(i) * buf_f_(i) - l.h);
+      e(n++) = normalised ? res / std::sqrt(l.r) : res / (Scalar(2) * std::sqrt(l.a));
     }
+    if (count != nullptr) *count = n;
     if (n == 0) return Scalar(0);
     Scalar* first = e.data();
     std::nth_element(first, first + n / 2, first + n);
     return e(n / 2);
   }
 
-  bool gauss_newton(int iterations) noexcept {
+  // Robust noise variance from the fit's residuals (1.4826 MAD, corrected for the 9 fitted
+  // parameters), less the reference's share; 0 when there are too few residuals.
+  Scalar noise_var_from_fit(int* n_out) const noexcept {
+    int n = 0;
+    const Scalar med = median_abs_residual(false, &n);
+    *n_out = n;
+    if (n <= 9 || !(med > 0)) return Scalar(0);
+    const Scalar sig =
+        Scalar(1.4826) * med * std::sqrt(static_cast<Scalar>(n) / static_cast<Scalar>(n - 9));
+    const Scalar sf = cfg_.reference_sigma_nT / scale_or_one();
+    const Scalar v = std::max(sig * sig - sf * sf, sigma_floor() * sigma_floor());
+    return std::isfinite(v) ? v : Scalar(0);
+  }
+  // A converged fit's residual scale becomes the prior of the running estimate (unless the
+  // innovations already gave one: a restart).
+  void commit_fit_noise() noexcept {
+    int n = 0;
+    const Scalar v = noise_var_from_fit(&n);
+    if (!(v > 0) || noise_n_ > 0) return;
+    noise_prior_var_ = v;
+    noise_prior_n_ = kMadShare * static_cast<Scalar>(n - 9);
+  }
+
+  // Gauss-Newton; *converged: the last step was below a tenth of a standard deviation (in the
+  // metric of the information).
+  bool gauss_newton(int iterations, bool* converged = nullptr) noexcept {
+    bool settled = false;
     for (int it = 0; it < iterations; ++it) {
       StateMat info;
       StateVec grad;
@@ -691,12 +990,76 @@ class ScalarEkf {
       const StateVec step = ldlt.solve(grad);
       if (!step.allFinite()) return false;
       x_ += step;
+      settled = step.dot(grad) < Scalar(0.01);
     }
+    if (converged != nullptr) *converged = settled;
     return x_.allFinite();
+  }
+
+  // P = info^-1, column by column: a matrix right-hand side would go through Eigen's blocked
+  // level-3 triangular solver, whose (unused) heap fallback the firmware image must not link.
+  static bool invert_information(const StateMat& info, StateMat* p) noexcept {
+    const Eigen::LDLT<StateMat> ldlt(info);
+    if (ldlt.info() != Eigen::Success || !ldlt.isPositive()) return false;
+    for (int c = 0; c < kN; ++c) {
+      StateVec e = StateVec::Zero();
+      e(c) = 1;
+      const StateVec col = ldlt.solve(e);
+      p->col(c) = col;
+    }
+    return p->allFinite();
+  }
+
+  // Relative 1-sigmas (C^-1 elements; b over the mean reference field) and the undetermined bits.
+  void judge_sigmas(const StateMat& p0) noexcept {
+    Scalar f_mean{0};
+    for (int i = 0; i < n_buf_; ++i)
+      f_mean += buf_f_(i);
+    f_mean /= static_cast<Scalar>(n_buf_);
+    report_.undetermined = 0;
+    for (int k = 0; k < kN; ++k) {
+      Scalar sd = std::sqrt(std::max(p0(k, k), Scalar(0)));
+      if (k >= kEkfBx) sd /= f_mean;
+      if (!std::isfinite(sd)) sd = std::numeric_limits<Scalar>::infinity();
+      report_.relative_sigma(k) = sd;
+      if (!(sd <= cfg_.init_max_sigma)) report_.undetermined |= 1U << k;
+    }
+  }
+
+  // What the set can determine when no ellipsoid could be fitted: its information about a
+  // nominal sphere (W = I / mean |m| times the mean F, b = 0) at the noise in use (when estimating
+  // and no estimate exists yet, the algebraic fit's residual scale, else the configured guess). A
+  // tiny ridge keeps a rank-deficient set (a plane of directions) invertible; its directions come
+  // out with huge sigmas.
+  void diagnose_without_fit(const StateVec& x_keep) noexcept {
+    Scalar r_mean{0}, f_mean{0};
+    for (int i = 0; i < n_buf_; ++i) {
+      r_mean += buf_m_.col(i).norm();
+      f_mean += buf_f_(i);
+    }
+    x_ = flatten_state(Mat3<Scalar>::Identity() * (f_mean / r_mean), Vec3<Scalar>::Zero());
+    used_.head(n_buf_).setOnes();
+    StateMat info;
+    StateVec grad;
+    normal_equations(&info, &grad);
+    const Scalar ridge =
+        info.diagonal().maxCoeff() * Scalar(64) * std::numeric_limits<Scalar>::epsilon();
+    info.diagonal().array() += ridge;
+    StateMat p0;
+    if (invert_information(info, &p0)) {
+      judge_sigmas(p0);
+    } else {
+      report_.relative_sigma.setConstant(std::numeric_limits<Scalar>::infinity());
+      report_.undetermined = (1U << kN) - 1U;
+    }
+    x_ = x_keep;
   }
 
   bool solve_initial_fit() noexcept {
     const StateVec x_before = x_;
+    const Scalar sigma_before = sigma_;
+    report_ = InitReport{};
+    report_.samples = n_buf_;
     used_.setZero();
     used_.head(n_buf_).setOnes();
     Vec3<Scalar> center = Vec3<Scalar>::Zero();
@@ -704,59 +1067,67 @@ class ScalarEkf {
       center += buf_m_.col(i);
     center /= static_cast<Scalar>(n_buf_);
     bool ok = algebraic_fit(center);
+    const bool ellipsoid = ok;
     // Robust screening: spikes bias the algebraic fit, so use a threshold that adapts to its
     // residual spread, refit without the outliers, then Gauss-Newton with the gate proper.
     const Scalar gate = cfg_.gate_nis > 0 ? cfg_.gate_nis : std::numeric_limits<Scalar>::infinity();
     int dropped = 0;
     if (ok) {
-      const Scalar robust = Scalar(5) * Scalar(1.4826) * median_abs_normalised_residual();
+      const Scalar robust = Scalar(5) * Scalar(1.4826) * median_abs_residual(true);
       dropped = screen(std::max(gate, robust * robust));
       if (dropped > 0) ok = algebraic_fit(center);
     }
-    ok = ok && gauss_newton(cfg_.init_gauss_newton_iterations);
-    if (ok) {
-      const int late = screen(gate);
+    // The algebraic fit's residual scale: the noise the diagnosis assumes if nothing better comes.
+    int n_alg = 0;
+    const Scalar v_alg = ok ? noise_var_from_fit(&n_alg) : Scalar(0);
+    bool converged = false;
+    ok = ok && gauss_newton(cfg_.init_gauss_newton_iterations, &converged);
+    if (ok && converged) {
+      // The noise from these residuals (debias and gating depend on it), then settle again.
+      int n = 0;
+      const Scalar v = noise_var_from_fit(&n);
+      if (cfg_.estimate_noise && v > 0 && !(noise_n_ > 0))
+        sigma_ = std::max(std::sqrt(v), sigma_floor());
+      // A given noise far below the residuals would gate every sample: screen no tighter than the
+      // residuals' own robust spread.
+      const Scalar robust = Scalar(5) * Scalar(1.4826) * median_abs_residual(true);
+      const int late = screen(std::max(gate, robust * robust));
       dropped += late;
-      if (late > 0) ok = gauss_newton(2);
+      ok = gauss_newton(2, &converged);
+      if (ok && !converged) ok = gauss_newton(cfg_.init_gauss_newton_iterations, &converged);
     }
     StateMat info;
     StateVec grad;
-    ok = ok && normal_equations(&info, &grad) >= 16;
-    if (ok) {
-      // P0 = info^-1: the filter has absorbed these samples and continues from here.
-      const Eigen::LDLT<StateMat> ldlt(info);
-      // Column by column: a matrix right-hand side would go through Eigen's blocked level-3
-      // triangular solver, whose (unused) heap fallback the firmware image must not link.
-      StateMat p0;
-      for (int c = 0; c < kN; ++c) {
-        StateVec e = StateVec::Zero();
-        e(c) = 1;
-        const StateVec col = ldlt.solve(e);
-        p0.col(c) = col;
-      }
-      ok = ldlt.info() == Eigen::Success && ldlt.isPositive() && p0.allFinite() &&
-           sigma_acceptable(p0) && c_inv().determinant() > 0 && ud_factorise(p0);
+    StateMat p0;
+    const bool fitted =
+        ok && converged && normal_equations(&info, &grad) >= 16 && invert_information(info, &p0);
+    if (fitted) {
+      judge_sigmas(p0);
+      commit_fit_noise();
+    } else {
+      // No fit to judge (no ellipsoid, or Gauss-Newton wandered off): what could the set tell?
+      if (cfg_.estimate_noise && v_alg > 0 && !(noise_var() > 0))
+        sigma_ = std::max(std::sqrt(v_alg), sigma_floor());
+      diagnose_without_fit(x_before);
     }
-    if (!ok) {
-      x_ = x_before;
-      u_.setIdentity();
-      d_.setOnes();
-      return false;
+    if (fitted && report_.undetermined == 0 && c_inv().determinant() > 0 && ud_factorise(p0)) {
+      counters_.init_outliers += static_cast<std::uint32_t>(dropped);
+      return true;
     }
-    counters_.init_outliers += static_cast<std::uint32_t>(dropped);
-    return true;
-  }
-
-  // Predicted 1-sigma of every state below init_max_sigma (C^-1 elements; b relative to the field).
-  bool sigma_acceptable(const StateMat& p0) const noexcept {
-    Scalar f_mean{0};
-    for (int i = 0; i < n_buf_; ++i)
-      f_mean += buf_f_(i);
-    f_mean /= static_cast<Scalar>(n_buf_);
-    const Scalar lim_w = cfg_.init_max_sigma * cfg_.init_max_sigma;
-    const Scalar lim_b = lim_w * f_mean * f_mean;
-    return p0.diagonal().template head<9>().maxCoeff() < lim_w &&
-           p0.diagonal().template tail<3>().maxCoeff() < lim_b;
+    // Failed: say why, in the order the acceptance policy checks causes.
+    if (report_.undetermined != 0) {
+      report_.failure = EkfInitFailure::kUndetermined;
+    } else if (!ellipsoid) {
+      report_.failure = EkfInitFailure::kNotAnEllipsoid;
+    } else {
+      report_.failure = EkfInitFailure::kNotConverged;  // or a reflection / non-PD covariance
+    }
+    x_ = x_before;
+    sigma_ = sigma_before;
+    use_noise_estimate();
+    u_.setIdentity();
+    d_.setOnes();
+    return false;
   }
 
   // P = U D U^T with U unit upper triangular. False unless P is positive definite.
@@ -784,17 +1155,38 @@ class ScalarEkf {
   Config cfg_{};
   EkfCounters counters_{};
   EkfResetReason last_reset_ = EkfResetReason::kNone;
+  InitReport report_{};
   Scalar scale_{0};
+  Scalar sigma_{0};  // noise in use (normalised)
   bool initialised_ = false;
   bool use_fit_ = true;  // start from the initial fit (else from the configured start)
   StateVec x_ = StateVec::Zero();
   StateMat u_ = StateMat::Identity();
   StateVec d_ = StateVec::Ones();
-  // Initial-fit buffer (normalised samples and reference field).
+  // Start-up set (normalised samples and reference field) and its direction information.
   Mat<Scalar, 3, kInitCapacity> buf_m_ = Mat<Scalar, 3, kInitCapacity>::Zero();
   Vec<Scalar, kInitCapacity> buf_f_ = Vec<Scalar, kInitCapacity>::Zero();
   Vec<Scalar, kInitCapacity> used_ = Vec<Scalar, kInitCapacity>::Zero();
+  Vec<Scalar, kInitCapacity> lev_ = Vec<Scalar, kInitCapacity>::Zero();
   int n_buf_ = 0;
+  FeatureMat feat_info_ = FeatureMat::Zero();
+  Eigen::LDLT<FeatureMat> feat_ldlt_{};
+  Scalar feat_logdet_{0};
+  Scalar logdet_at_try_{0};
+  bool feat_dirty_ = true;
+  bool lev_dirty_ = true;
+  bool tried_ = false;
+  bool changed_since_try_ = false;
+  // Noise estimate: the start-up fit's (prior_var with weight prior_n) and the innovations' terms
+  // (count, mean, M2), merged per clean window.
+  Scalar noise_prior_var_{0};
+  Scalar noise_prior_n_{0};
+  Scalar noise_n_{0};
+  Scalar noise_mean_{0};
+  Scalar noise_m2_{0};
+  int window_noise_n_ = 0;
+  Scalar window_noise_sum_{0};
+  Scalar window_noise_sum2_{0};
   // Divergence-detection window.
   int window_n_ = 0;
   int window_gated_ = 0;

@@ -231,13 +231,69 @@ TEST_F(Calibrate, LevelOnlyDataIsRefusedAsUnobservableHeading) {
   EXPECT_NE(r.output.find("unobservable_heading_misalignment"), std::string::npos) << r.output;
   EXPECT_NE(r.output.find("nothing written"), std::string::npos);
   EXPECT_FALSE(fs::exists(file("cal.json")));
-  // --force-write records the refusal in the file.
+  // Refused before any fit: there is no solution, so --force-write writes nothing and says so.
   const Result f = run("calibrate --method li-ml --force-write --in " + file("level.csv") +
                        " --out " + file("cal.json"));
   EXPECT_EQ(f.status, 3) << f.output;
+  EXPECT_FALSE(fs::exists(file("cal.json")));
+  EXPECT_NE(f.output.find("before it had any solution"), std::string::npos) << f.output;
+}
+
+TEST_F(Calibrate, ForceWriteWritesARefusedSolutionWithItsVerdict) {
+  ASSERT_EQ(run("simulate --scenario li2023 --seed 3 --out " + file("li.csv")).status, 0);
+  // A given noise 30x below the data's: the fit exists, its residuals refuse it.
+  const Result r = run("calibrate --noise-nT 0.01 --ins-noise-deg 0.0005 --in " + file("li.csv") +
+                       " --out " + file("cal.json"));
+  EXPECT_EQ(r.status, 3) << r.output;
+  EXPECT_NE(r.output.find("residual_too_large"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("disagrees with the data's own estimate"), std::string::npos) << r.output;
+  EXPECT_FALSE(fs::exists(file("cal.json")));
+  const Result f = run("calibrate --noise-nT 0.01 --ins-noise-deg 0.0005 --force-write --in " +
+                       file("li.csv") + " --out " + file("cal.json"));
+  EXPECT_EQ(f.status, 3) << f.output;
   ASSERT_TRUE(fs::exists(file("cal.json")));
   EXPECT_EQ(magvec::host::read_calibration_file(file("cal.json")).quality.verdict,
-            "unobservable_heading_misalignment");
+            "residual_too_large");
+}
+
+TEST_F(Calibrate, DefaultsEstimateNoiseAndTimeOffsetAndRecordThem) {
+  ASSERT_EQ(run("simulate --scenario li2023 --seed 4 --out " + file("li.csv")).status, 0);
+  const Result r = run("calibrate --in " + file("li.csv") + " --out " + file("cal.json"));
+  EXPECT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("estimated from the data"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("time offset"), std::string::npos) << r.output;
+  const magvec::host::CalibrationFile cal = magvec::host::read_calibration_file(file("cal.json"));
+  EXPECT_TRUE(cal.noise.mag_estimated);
+  // li2023: 0.3 nT, 0.015 deg.
+  EXPECT_NEAR(cal.noise.mag_nT, 0.3, 4 * cal.noise.mag_sigma_nT + 0.03);
+  EXPECT_NEAR(cal.noise.ins_deg, 0.015, 4 * cal.noise.ins_sigma_deg + 0.002);
+}
+
+TEST_F(Calibrate, HeaderOnlyFileIsNoDataAndUnitsAreNamed) {
+  {
+    std::ofstream out(file("empty.csv"));
+    out << "\xEF\xBB\xBFt_s,hx_nT,hy_nT,hz_nT,F_nT,alpha_deg,beta_deg,gamma_deg\n";
+  }
+  const Result e = run("calibrate --in " + file("empty.csv") + " --out " + file("cal.json"));
+  EXPECT_EQ(e.status, 3) << e.output;
+  EXPECT_NE(e.output.find("no_data"), std::string::npos) << e.output;
+  // Readings in uT under an nT header.
+  ASSERT_EQ(run("simulate --scenario li2023 --seed 5 --out " + file("li.csv")).status, 0);
+  {
+    magvec::host::io::CsvReader in(file("li.csv"));
+    magvec::host::io::CsvWriter w(file("ut.csv"), {"t_s", "hx_nT", "hy_nT", "hz_nT", "F_nT"});
+    magvec::host::io::CsvRecord rec;
+    while (in.next(&rec)) {
+      const double row[5] = {rec.t_s, rec.m_nT(0) * 1e-3, rec.m_nT(1) * 1e-3, rec.m_nT(2) * 1e-3,
+                             *rec.f_nT};
+      w.write_row(row);
+    }
+    w.commit();
+  }
+  const Result u = run("calibrate --in " + file("ut.csv") + " --out " + file("cal.json"));
+  EXPECT_EQ(u.status, 3) << u.output;
+  EXPECT_NE(u.output.find("unit_mismatch"), std::string::npos) << u.output;
+  EXPECT_NE(u.output.find("uT under an nT header"), std::string::npos) << u.output;
 }
 
 TEST_F(Calibrate, TooFewRowsIsRefused) {

@@ -133,8 +133,11 @@ class BatchCalibrator {
   const SampleStore<Scalar, Capacity>& store() const noexcept { return store_; }
 
   // m [nT]; f_nT: scalar reference for this sample (NaN: use config().field_nT); r_bn: attitude.
-  AddStatus add_sample(const Vec3<Scalar>& m, Scalar f_nT, const Mat3<Scalar>& r_bn) noexcept {
-    return add(m, f_nT, &r_bn);
+  // att_var: the attitude's noise variance relative to one INS record (interpolated attitudes
+  // average two records: (1-u)^2 + u^2).
+  AddStatus add_sample(const Vec3<Scalar>& m, Scalar f_nT, const Mat3<Scalar>& r_bn,
+                       Scalar att_var = Scalar(1)) noexcept {
+    return add(m, f_nT, &r_bn, att_var);
   }
   // Scalar-only sample (kEllipsoidOnly).
   AddStatus add_sample(const Vec3<Scalar>& m, Scalar f_nT) noexcept {
@@ -346,7 +349,8 @@ class BatchCalibrator {
     return oopt;
   }
 
-  AddStatus add(const Vec3<Scalar>& m, Scalar f, const Mat3<Scalar>* r_bn) noexcept {
+  AddStatus add(const Vec3<Scalar>& m, Scalar f, const Mat3<Scalar>* r_bn,
+                Scalar att_var = Scalar(1)) noexcept {
     ++counts_.offered;
     if (!std::isfinite(f)) f = cfg_.field_nT;
     const bool bad_att = r_bn != nullptr && !r_bn->allFinite();
@@ -354,7 +358,8 @@ class BatchCalibrator {
       ++counts_.skipped_nonfinite;
       return AddStatus::kSkippedNonFinite;
     }
-    if (!store_.push(m, f, r_bn)) {
+    if (!(att_var > Scalar(0)) || !std::isfinite(att_var)) att_var = Scalar(1);
+    if (!store_.push(m, f, r_bn, att_var)) {
       ++counts_.dropped_full;
       return AddStatus::kStoreFull;
     }

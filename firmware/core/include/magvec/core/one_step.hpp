@@ -149,6 +149,8 @@ class OneStepFit {
     // Variance components: q_k = r^T S^-1 V_k S^-1 r and t_k = tr(S^-1 V_k), k = magnetometer
     // (V = P P^T) and attitude (V = C C^T).
     Scalar q_mag{0}, t_mag{0}, q_att{0}, t_att{0};
+    // Fisher information of the two variances: 1/2 sum tr(S^-1 V_k S^-1 V_l).
+    Scalar f_mm{0}, f_ma{0}, f_aa{0};
     std::array<std::uint32_t, kTailBins> tail{};
   };
 
@@ -175,11 +177,20 @@ class OneStepFit {
       total_it += it;
       if (sums.count < 5) return out;
       if (!opt.estimate_noise || !converged) break;
-      // Variance-component update (Foerstner): theta_k <- theta_k q_k / (t_k (1 - p/n_obs)).
+      // Variance-component update by Fisher scoring (for a covariance linear in the variances:
+      // theta <- F^-1 u, u_k = 1/2 r^T S^-1 V_k S^-1 r), with the parameters' share of the
+      // residual removed. Converges in a few rounds even when one component hides behind the
+      // other (the plain fixed point theta_k q_k / t_k crawls there).
       const Scalar red =
           Scalar(1) - Scalar(kParams) / (Scalar(3) * static_cast<Scalar>(sums.count));
-      const Scalar sm2 = sm * sm * sums.q_mag / std::max(sums.t_mag * red, Scalar(1e-30));
-      const Scalar sa2 = sa * sa * sums.q_att / std::max(sums.t_att * red, Scalar(1e-30));
+      const Scalar det = sums.f_mm * sums.f_aa - sums.f_ma * sums.f_ma;
+      Scalar sm2 = sm * sm * sums.q_mag / std::max(sums.t_mag * red, Scalar(1e-30));
+      Scalar sa2 = sa * sa * sums.q_att / std::max(sums.t_att * red, Scalar(1e-30));
+      if (det > Scalar(0)) {
+        const Scalar um = Scalar(0.5) * sums.q_mag / red, ua = Scalar(0.5) * sums.q_att / red;
+        sm2 = (sums.f_aa * um - sums.f_ma * ua) / det;
+        sa2 = (sums.f_mm * ua - sums.f_ma * um) / det;
+      }
       const Scalar sm_new = std::max(std::sqrt(std::max(sm2, Scalar(0))), sm_floor);
       const Scalar sa_new = std::max(std::sqrt(std::max(sa2, Scalar(0))), sm_new * Scalar(1e-3));
       const Scalar change =
@@ -209,12 +220,14 @@ class OneStepFit {
     out.mag_noise_nT = sm * norm.scale;
     out.attitude_noise_rad = sa;
     if (opt.estimate_noise) {
-      // Var(theta_k) ~ 2 theta_k^2 / n_k, n_k = theta_k t_k the residual dof carried by component
-      // k.
-      const Scalar n_mag = std::max(sm * sm * sums.t_mag, Scalar(1));
-      const Scalar n_att = std::max(sa * sa * sums.t_att, Scalar(1));
-      out.mag_noise_sigma_nT = out.mag_noise_nT / std::sqrt(Scalar(2) * n_mag);
-      out.attitude_noise_sigma_rad = sa / std::sqrt(Scalar(2) * n_att);
+      // Covariance of the variance estimates: the inverse of their Fisher information (which
+      // sees how well the two components can be told apart); sigma(s) = sigma(s^2) / (2 s).
+      const Scalar det = sums.f_mm * sums.f_aa - sums.f_ma * sums.f_ma;
+      if (det > Scalar(0)) {
+        const Scalar var_m = sums.f_aa / det, var_a = sums.f_mm / det;
+        out.mag_noise_sigma_nT = std::sqrt(var_m) / (Scalar(2) * sm) * norm.scale;
+        out.attitude_noise_sigma_rad = std::sqrt(var_a) / (Scalar(2) * sa);
+      }
     }
     out.tail_ratio = tail_ratio(sums);
 
@@ -444,6 +457,7 @@ class OneStepFit {
       } else {
         c << Scalar(0), -hw(2), hw(1), hw(2), Scalar(0), -hw(0), -hw(1), hw(0), Scalar(0);
       }
+      c *= std::sqrt(s.att_var);  // an interpolated attitude averages two records' noise
       const Mat3<Scalar> cov = sm2 * (pw * pw.transpose()) + sa2 * (c * c.transpose());
       const Eigen::LLT<Mat3<Scalar>> llt(cov);
       if (llt.info() != Eigen::Success) continue;
@@ -459,8 +473,12 @@ class OneStepFit {
       const Vec3<Scalar> sr = llt.matrixU().solve(rw);
       out.q_mag += (pw.transpose() * sr).squaredNorm();
       out.q_att += (c.transpose() * sr).squaredNorm();
-      out.t_mag += Mat3<Scalar>(llt.matrixL().solve(pw)).squaredNorm();
-      out.t_att += Mat3<Scalar>(llt.matrixL().solve(c)).squaredNorm();
+      const Mat3<Scalar> lm = llt.matrixL().solve(pw), la = llt.matrixL().solve(c);
+      out.t_mag += lm.squaredNorm();
+      out.t_att += la.squaredNorm();
+      out.f_mm += Scalar(0.5) * Mat3<Scalar>(lm.transpose() * lm).squaredNorm();
+      out.f_ma += Scalar(0.5) * Mat3<Scalar>(lm.transpose() * la).squaredNorm();
+      out.f_aa += Scalar(0.5) * Mat3<Scalar>(la.transpose() * la).squaredNorm();
       const Scalar bin = r2 * Scalar(kTailBins) / Scalar(32);
       const int b = bin < Scalar(kTailBins - 1) ? static_cast<int>(bin) : kTailBins - 1;
       ++out.tail[static_cast<std::size_t>(b)];

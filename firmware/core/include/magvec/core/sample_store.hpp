@@ -39,6 +39,9 @@ struct StoredSample {
   std::array<Scalar, 3> m{};  // raw reading [nT]
   Scalar f{0};                // scalar reference field [nT]
   std::array<Scalar, 4> q{};  // R_bn as a unit quaternion (w, x, y, z)
+  // Attitude-noise variance of this sample relative to one INS record: (1-u)^2 + u^2 for an
+  // attitude interpolated at fraction u between two records with independent noise, else 1.
+  Scalar att_var{1};
   std::uint8_t flags{0};
 
   Vec3<Scalar> raw() const noexcept { return Vec3<Scalar>(m[0], m[1], m[2]); }
@@ -103,11 +106,13 @@ class SampleStore {
   bool full() const noexcept { return size_ == samples_.capacity(); }
 
   // Stores a finite sample; returns false when full. r_bn may be null (no attitude).
-  bool push(const Vec3<Scalar>& m, Scalar f, const Mat3<Scalar>* r_bn) noexcept {
+  bool push(const Vec3<Scalar>& m, Scalar f, const Mat3<Scalar>* r_bn,
+            Scalar att_var = Scalar(1)) noexcept {
     if (!samples_.ensure(size_ + 1)) return false;
     StoredSample<Scalar>& s = samples_.data()[size_];
     s.m = {m(0), m(1), m(2)};
     s.f = f;
+    s.att_var = att_var;
     s.flags = 0;
     if (r_bn != nullptr) {
       Quat<Scalar> q(*r_bn);

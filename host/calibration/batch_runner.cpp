@@ -497,7 +497,9 @@ BatchRun run_batch(io::CsvReader& reader, const BatchRunOptions& opt) {
     run.time_offset.note = "fixed by the user";
   }
   run.result = cal->solve(opt.method);
-  if (run.needs_attitude && !opt.fixed_time_offset_s) {
+  if (run.needs_attitude && !opt.fixed_time_offset_s && !reader.has_time()) {
+    run.time_offset.note = "not estimated: the recording has no t_s column";
+  } else if (run.needs_attitude && !opt.fixed_time_offset_s) {
     run.time_offset = estimate_time_offset(cal.get(), rows, opt, &run.result);
   } else if (!run.needs_attitude) {
     run.time_offset.note = "not applicable (no attitude)";

@@ -1,9 +1,14 @@
 // `magvec apply --cal cal.json --in data.csv --out comp.csv`: compensates a recording with a
-// calibration (DESIGN.md: h_s = W (m - o), h_b = Rm^T h_s, h_n = R_bn^T h_b), streaming, and
-// writes t_s, raw, h_s, F (= |h_s|), E/N/U when the input has attitude, and flags.
-// flags uses the SensorLoop's bits (core::OutputFlag): 1 dropout, 32 outlier (|F - F_ref| above
-// the threshold; only when the input has a scalar reference).
+// calibration (docs/conventions.md: h_s = W (m - o), h_b = Rm^T h_s, h_n = R_bn^T h_b), streaming,
+// and writes t_s, raw, h_s, F (= |h_s|), E/N/U when the input has attitude, and flags.
+// The magnetometer-INS time offset of the calibration (cal.json time_offset_s, or
+// --time-offset-s) is applied: a reading stamped t gets the attitude at t - offset, slerped between
+// the neighbouring rows (a first pass reads the attitudes); where no row on either side lies
+// within 4 attitude periods the E/N/U are not computed (flag 4, no attitude).
+// flags uses the SensorLoop's bits (core::OutputFlag): 1 dropout, 4 no attitude, 32 outlier
+// (|F - F_ref| above the threshold; only when the input has a scalar reference).
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <cmath>
 #include <iostream>
 #include <limits>
@@ -27,6 +32,43 @@ struct ApplyOptions {
   std::string out_path;
   double field_nT = std::numeric_limits<double>::quiet_NaN();
   double outlier_nT = std::numeric_limits<double>::quiet_NaN();
+  double time_offset_s = std::numeric_limits<double>::quiet_NaN();
+};
+
+// The recording's attitudes, for the attitude at t - offset.
+class AttitudeTrack {
+ public:
+  AttitudeTrack(const std::string& path, const io::CsvReaderOptions& ropt) {
+    io::CsvReader reader(path, ropt);
+    io::CsvRecord rec;
+    while (reader.next(&rec)) {
+      if (!rec.r_bn || !rec.r_bn->allFinite()) continue;
+      if (!t_.empty() && !(rec.t_s > t_.back())) continue;
+      t_.push_back(rec.t_s);
+      q_.push_back(core::Quat<double>(*rec.r_bn).normalized());
+    }
+    std::vector<double> d;
+    for (std::size_t i = 1; i < t_.size(); ++i)
+      d.push_back(t_[i] - t_[i - 1]);
+    if (!d.empty()) {
+      std::nth_element(d.begin(), d.begin() + static_cast<std::ptrdiff_t>(d.size() / 2), d.end());
+      max_gap_s_ = 4.0 * d[d.size() / 2];
+    }
+  }
+  bool at(double t, core::Mat3<double>* r_bn) const {
+    const auto it = std::upper_bound(t_.begin(), t_.end(), t);
+    if (it == t_.begin() || it == t_.end()) return false;
+    const std::size_t i1 = static_cast<std::size_t>(it - t_.begin()), i0 = i1 - 1;
+    const double dt = t_[i1] - t_[i0];
+    if (!(dt > 0) || dt > max_gap_s_) return false;
+    *r_bn = q_[i0].slerp((t - t_[i0]) / dt, q_[i1]).toRotationMatrix();
+    return true;
+  }
+
+ private:
+  std::vector<double> t_;
+  std::vector<core::Quat<double>> q_;
+  double max_gap_s_ = 0;
 };
 
 void run(const ApplyOptions& o) {
@@ -35,6 +77,9 @@ void run(const ApplyOptions& o) {
   if (std::isfinite(o.field_nT)) ropt.f_nT = o.field_nT;
   io::CsvReader reader(o.in_path, ropt);
   const bool has_attitude = reader.attitude_columns() != io::AttitudeColumns::kNone;
+  const double offset_s = std::isfinite(o.time_offset_s) ? o.time_offset_s : cal.time_offset_s;
+  std::unique_ptr<AttitudeTrack> track;
+  if (has_attitude && offset_s != 0) track = std::make_unique<AttitudeTrack>(o.in_path, ropt);
   // Default outlier bound: six times the calibration's residual RMS, at least 1 nT.
   const double outlier_nT = std::isfinite(o.outlier_nT)
                                 ? o.outlier_nT
@@ -44,11 +89,13 @@ void run(const ApplyOptions& o) {
                                       "hsx_nT", "hsy_nT", "hsz_nT", "F_nT"};
   if (has_attitude) columns.insert(columns.end(), {"hE_nT", "hN_nT", "hU_nT"});
   columns.emplace_back("flags");
-  io::CsvWriter writer(
-      o.out_path, columns,
-      {"magvec apply: calibration " + o.cal_path + " (method " + cal.provenance.method +
-           ") applied to " + o.in_path,
-       "flags: 1 dropout, 32 outlier (|F - F_ref| > " + fixed(outlier_nT, 3) + " nT)"});
+  io::CsvWriter writer(o.out_path, columns,
+                       {"magvec apply: calibration " + o.cal_path + " (method " +
+                            cal.provenance.method + ") applied to " + o.in_path,
+                        "magnetometer-INS time offset " + fixed(offset_s * 1e3, 3) +
+                            " ms: attitude taken at t_s - offset",
+                        "flags: 1 dropout, 4 no attitude, 32 outlier (|F - F_ref| > " +
+                            fixed(outlier_nT, 3) + " nT)"});
 
   const core::Compensator<double> comp(cal.model);
   const double nan = std::numeric_limits<double>::quiet_NaN();
@@ -86,8 +133,11 @@ void run(const ApplyOptions& o) {
         }
       }
       if (has_attitude) {
-        if (rec.r_bn) {
-          const core::Vec3<double> h_n = core::Compensator<double>::to_nav(c.h_b, *rec.r_bn);
+        core::Mat3<double> r_bn;
+        const bool att = track ? track->at(rec.t_s - offset_s, &r_bn)
+                               : (rec.r_bn ? (r_bn = *rec.r_bn, true) : false);
+        if (att) {
+          const core::Vec3<double> h_n = core::Compensator<double>::to_nav(c.h_b, r_bn);
           for (int i = 0; i < 3; ++i)
             row[k++] = h_n(i);
         } else {
@@ -126,6 +176,10 @@ void register_apply(CLI::App& app) {
   cmd->add_option("--outlier-nT", opts->outlier_nT,
                   "Flag samples whose |F - F_ref| exceeds this (default 6x the calibration RMS)")
       ->check(CLI::PositiveNumber);
+  cmd->add_option("--time-offset-s", opts->time_offset_s,
+                  "Magnetometer-minus-INS time offset [s] (default: the calibration's "
+                  "time_offset_s)")
+      ->check(CLI::Range(-10.0, 10.0));
   cmd->callback([opts] { run(*opts); });
 }
 

@@ -151,6 +151,7 @@ std::string names_or_none(std::uint32_t bits) {
 CalibrationFile run_batch_method(const CalibrateOptions& o, core::BatchMethod method) {
   io::CsvReaderOptions ropt;
   if (std::isfinite(o.field_nT)) ropt.f_nT = o.field_nT;
+  ropt.require_time = false;  // only the time-offset estimate uses t_s
   io::CsvReader reader(o.in_path, ropt);
   const bool need_att = method != core::BatchMethod::kEllipsoidOnly;
   if (need_att && reader.attitude_columns() == io::AttitudeColumns::kNone) {
@@ -323,21 +324,38 @@ CalibrationFile run_ekf_method(const CalibrateOptions& o) {
   eo.paper_settings = o.paper_settings;
   eo.float32 = o.float32;
   eo.passes = o.passes;
-  eo.noise_nT = std::isfinite(o.noise_nT) ? o.noise_nT : 10.0;
+  if (std::isfinite(o.noise_nT)) eo.noise_nT = o.noise_nT;  // else estimated from the data
   if (std::isfinite(o.field_nT)) eo.field_nT = o.field_nT;
   eo.trace_path = o.trace;
   const EkfRun run = run_ekf(o.in_path, ropt, eo);
   std::cout << "magvec calibrate: method ekf: 12-state scalar EKF (Ge 2017, ERRATA 002), "
             << (o.float32 ? "float32" : "float64") << ", "
-            << (o.paper_settings ? "paper settings (printed x0/P0/Q/R; known to fail, ERRATA 002-3)"
-                                 : "default settings (start from a fit of the first samples)")
+            << (o.paper_settings
+                    ? "paper settings (printed x0/P0/Q/R; known to fail, ERRATA 002-3)"
+                    : "default settings (start from a fit of a well-spread start-up set)")
             << ", " << o.passes << (o.passes == 1 ? " pass" : " passes") << "\n"
-            << "  input " << o.in_path << "; noise " << fixed(eo.noise_nT, 2) << " nT/axis\n";
+            << "  input " << o.in_path << "; magnetometer noise ";
+  if (run.noise_estimated) {
+    std::cout << pm(run.noise_estimate_nT, run.noise_estimate_sigma_nT, 2)
+              << " nT/axis (estimated from the data)\n";
+  } else {
+    std::cout << fixed(run.noise_nT, 2) << " nT/axis (given; the data say "
+              << pm(run.noise_estimate_nT, run.noise_estimate_sigma_nT, 2) << ")\n";
+  }
+  for (const std::string& w : run.warnings)
+    std::cout << "  warning: " << w << "\n";
   print_counts(run.cal.counts, " (last pass)");
   std::cout << "  filter: " << run.counters.updates << " updates, " << run.counters.gated
             << " gated, " << run.counters.reinitialisations << " re-initialisations (last reason "
-            << run.last_reset << "), " << run.counters.init_outliers
+            << run.last_reset << "), " << run.counters.init_attempts << " initial fits tried ("
+            << run.counters.init_failures << " failed, " << run.counters.init_exchanges
+            << " start-up set exchanges), " << run.counters.init_outliers
             << " initial-fit outliers (all passes)\n";
+  if (!run.initialised) {
+    std::cout << "  filter not running at the end: last initial fit "
+              << ekf_init_failure_name(run.init_report.failure) << " on " << run.init_report.samples
+              << " samples; start-up set " << run.startup_samples << " samples\n";
+  }
   if (run.initialised) {
     const core::Mat3<double> c_inv = run.model.w;
     std::cout << "  Ge 2017 parameters (1-sigma):\n    C^-1           [";
@@ -383,7 +401,9 @@ void run(const CalibrateOptions& o) {
       std::string method = o.method;
       if (method == "auto") {
         // li-ml needs the attitude; a compass capture without it gets the ellipsoid fit.
-        const io::CsvReader probe(o.in_path);
+        io::CsvReaderOptions popt;
+        popt.require_time = false;
+        const io::CsvReader probe(o.in_path, popt);
         method = probe.attitude_columns() == io::AttitudeColumns::kNone ? "ellipsoid" : "li-ml";
       }
       if (!o.prior_path.empty() && method != "li-ml")

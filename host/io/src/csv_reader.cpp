@@ -223,7 +223,10 @@ void CsvReader::parse_header() {
     if (!found[slot]) throw CsvError(path_, line_no_, name, "missing required column");
     return *found[slot];
   };
-  col_t_ = require(0, "t_s");
+  if (options_.require_time || found[0]) {
+    col_t_ = require(0, "t_s");
+    has_time_ = true;
+  }
   col_hx_ = require(1, "hx_nT");
   col_hy_ = require(2, "hy_nT");
   col_hz_ = require(3, "hz_nT");
@@ -305,8 +308,12 @@ bool CsvReader::next(CsvRecord* out) {
   have_row_ = true;
   CsvRecord r;
   r.line = line_no_;
-  r.t_s = number(col_t_);
-  if (!std::isfinite(r.t_s)) fail(col_t_.index, "time must be a finite number");
+  if (has_time_) {
+    r.t_s = number(col_t_);
+    if (!std::isfinite(r.t_s)) fail(col_t_.index, "time must be a finite number");
+  } else {
+    r.t_s = kNaN;
+  }
   r.m_nT = core::Vec3<double>(number(col_hx_), number(col_hy_), number(col_hz_));
   if (r.m_nT.array().isNaN().any()) {
     r.dropout = true;

@@ -14,7 +14,8 @@
 //     rad); qw, qx, qy, qz (no unit).
 //   A known quantity with another unit (hx_G, t_ms) or without a unit (hx) is an error. Any other
 //   column (hx_true_nT, flags, ...) is ignored but its values remain available through value().
-// - Required: t_s, hx_nT, hy_nT, hz_nT. Optional: F_nT; attitude as alpha/beta/gamma (Li: R_bn =
+// - Required: t_s (unless CsvReaderOptions::require_time is false: then NaN), hx_nT, hy_nT,
+//   hz_nT. Optional: F_nT; attitude as alpha/beta/gamma (Li: R_bn =
 //   Ry(gamma) Rx(beta) Rz(alpha)), yaw/pitch/roll (aerospace NED/FRD) or qw..qz (rotates body
 //   vectors into ENU; R_bn = R(q)^T, must be unit within 1e-3); theta. A partial or a second
 //   attitude set is an error.
@@ -73,6 +74,8 @@ struct CsvRecord {
 struct CsvReaderOptions {
   // Scalar reference for every row when the file has no F column ("one value by option").
   std::optional<double> f_nT;
+  // false: a file without t_s is accepted (methods that do not use time); t_s is then NaN.
+  bool require_time = true;
 };
 
 class CsvReader {
@@ -94,6 +97,7 @@ class CsvReader {
   AttitudeColumns attitude_columns() const noexcept { return attitude_; }
   bool has_f() const noexcept { return col_f_.has_value(); }
   bool has_theta() const noexcept { return col_theta_.has_value(); }
+  bool has_time() const noexcept { return has_time_; }
   std::uint64_t line() const noexcept { return line_no_; }
 
   // Index of a column by exact header name.
@@ -130,6 +134,7 @@ class CsvReader {
   AttitudeColumns attitude_ = AttitudeColumns::kNone;
   Column col_att_[4]{};
   bool have_row_ = false;
+  bool has_time_ = false;
 };
 
 // Formats a double with the shortest representation that reads back to the same value; "nan" for

@@ -1,7 +1,8 @@
-// Runs the turntable sine-fitting calibration (seed 001 as corrected by ERRATA 001, core::SineSweep
-// and core::solve_sine) over an XY-sweep and an XZ-sweep recording (theta_deg column) and fills a
-// CalibrationFile. 1-sigma of every parameter by linear propagation of the per-axis fit residual
-// through solve_sine (numerical derivatives with respect to each reading).
+// Runs the turntable sine-fitting calibration (Jia et al. 2019 as corrected in docs/equations.md
+// E-Sine, core::SineSweep and core::solve_sine) over an XY-sweep and an XZ-sweep recording
+// (theta_deg column) and fills a CalibrationFile. 1-sigma of every parameter by linear propagation
+// of the per-axis fit residual through solve_sine (numerical derivatives with respect to each
+// reading).
 #pragma once
 
 #include <cstdint>

@@ -1,9 +1,9 @@
-// `magvec demo`: the real pipeline end to end, in simulated time (DESIGN.md "Host-in-the-loop
-// simulation", issue 5). A survey (drivers/sim scenario_survey: Li et al. 2023 sensor and field,
-// 60 s calibration manoeuvre, then survey lines) is played through simulated devices speaking the
-// real bytes (ADS131M04 on SPI + DRDY, SBG INS on CAN, with a few injected faults) -> the real
-// codecs -> AttitudeBuffer -> SensorLoop with the Li batch calibrator (core::BatchLiCalibrator:
-// collects during the manoeuvre, solves the one-step fit, validates on held-out samples, applies)
+// `magvec demo`: the real pipeline end to end, in simulated time (docs/architecture.md#simulation).
+// A survey (drivers/sim scenario_survey: Li et al. 2023 sensor and field, 60 s calibration
+// manoeuvre, then survey lines) is played through simulated devices speaking the real bytes
+// (ADS131M04 on SPI + DRDY, SBG INS on CAN, with a few injected faults) -> the real codecs ->
+// AttitudeBuffer -> SensorLoop with the Li batch calibrator (core::BatchLiCalibrator: collects
+// during the manoeuvre, solves the one-step fit, validates on held-out samples, applies)
 // -> DIR/records.csv. The calibration is written to DIR/cal.json. The before/after table is over
 // the survey lines after the calibration was applied: "before" is the raw reading (|m|, and m
 // rotated by R_bn^T), "after" the loop's output, "floor" the TRUE parameters applied to the same

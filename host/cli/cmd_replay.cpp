@@ -1,5 +1,5 @@
 // `magvec replay --lcm-log FILE --out FILE.csv`: runs the sensor loop deterministically over a
-// magvecd LCM log (issue 6 item 4): the raw magnetometer/attitude channels and the pipeline events
+// magvecd LCM log: the raw magnetometer/attitude channels and the pipeline events
 // (session configuration, installed calibrations, calibration starts) in log order through the
 // daemon's own EventPipeline, as fast as possible. Writes the record CSV of `magvec run` (the
 // `magvec apply` columns t_s, hx..hz, hsx..hsz, F, hE/hN/hU, flags, plus cal_id and sigma_F_nT).

@@ -1,5 +1,5 @@
 // `magvec report --cal cal.json --in data.csv [--trace trace.csv] --out DIR`: a calibration report
-// (issue 9). The numbers are computed here (host/report/report.cpp -> DIR/data/); the script
+// The numbers are computed here (host/report/report.cpp -> DIR/data/); the script
 // host/report/magvec_report.py draws them into DIR/*.png and writes DIR/index.html.
 #include <CLI/CLI.hpp>
 #include <cmath>

@@ -5,9 +5,9 @@
 // --calibrator (the calibration starts at the first sample; the loop's state machine collects,
 // solves, validates on held-out samples and applies; the previous calibration, from
 // --calibration FILE or the identity, stays active until then):
-//   li    core::BatchLiCalibrator (Li et al. 2023 one-step fit, ERRATA 000), motion-decimated
-//   store; ekf   core::EkfCalibrator (Ge et al. 2017 EKF, ERRATA 002) + misalignment fit for the
-//   INS
+//   li    core::BatchLiCalibrator (Li et al. 2023 one-step fit, docs/equations.md E-Li),
+//   motion-decimated store; ekf   core::EkfCalibrator (Ge et al. 2017 EKF, docs/equations.md E-Ge)
+//   + misalignment fit for the INS
 //         alignment (--ekf-no-align: EKF model only, Rm = I; then h_n is NOT aligned to the INS and
 //         the summary says so);
 //   none  no calibration runs (flagged uncalibrated while cal_id = 0).

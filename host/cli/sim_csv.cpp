@@ -65,7 +65,7 @@ std::vector<std::string> sim_csv_comments(const ScenarioConfig& c, std::uint64_t
                 std::to_string(seed) + ", " + std::to_string(c.num_samples) + " samples at " +
                 format_double(c.rate_hz) + " Hz");
   out.push_back(
-      "model: m = A Rm R_bn h_n + o + noise (DESIGN.md conventions: ENU, passive rotations, "
+      "model: m = A Rm R_bn h_n + o + noise (docs/conventions.md: ENU, passive rotations, "
       "R_bn = Ry(gamma) Rx(beta) Rz(alpha))");
   out.push_back("noise: magnetometer " + format_double(c.mag_noise_nT) + " nT/axis SD, INS " +
                 format_double(c.ins_noise_deg) + " deg/angle SD, F " + format_double(c.f_noise_nT) +

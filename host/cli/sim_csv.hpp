@@ -1,6 +1,7 @@
 // Shared by `magvec simulate` and `magvec demo`: scenario selection by name, the simulation CSV
-// layout (DESIGN.md "File formats" columns plus truth columns the reader ignores) and the '#'
-// header that states scenario, seed and the truth parameters in canonical, Li, Ge and sine form.
+// layout (docs/conventions.md#file-formats columns plus truth columns the reader ignores) and the
+// '#' header that states scenario, seed and the truth parameters in canonical, Li, Ge and sine
+// form.
 #pragma once
 
 #include <cstdint>

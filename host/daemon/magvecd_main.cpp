@@ -1,4 +1,4 @@
-// magvecd: the Linux daemon of the survey vehicle (issue 6 item 3).
+// magvecd: the Linux daemon of the survey vehicle.
 //   magvecd [--config FILE] [--sim] [--state-dir DIR] [--lcm-url URL] [--check-config]
 // Devices (real: spidev ADS131M04 + libgpiod DRDY or termios serial fluxgate, SocketCAN SBG INS;
 // --sim: SimRig's simulated devices through the same drivers, paced in real time) -> raw events

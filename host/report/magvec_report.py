@@ -1,5 +1,5 @@
 #!/usr/bin/python3
-"""Drawing half of `magvec report` (issue 9): reads DIR/data/report.json and the CSVs next to it,
+"""Drawing half of `magvec report`: reads DIR/data/report.json and the CSVs next to it,
 which the C++ side (host/report/report.cpp) computed, and writes DIR/*.png and DIR/index.html.
 No number shown here is computed here, except formatting and axis limits.
 

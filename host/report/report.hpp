@@ -1,10 +1,10 @@
-// `magvec report`: the numbers behind a calibration report (issue 9). The C++ side computes
-// everything that is shown -- compensation with the canonical model (DESIGN.md: h_s = W (m - o),
-// h_b = Rm^T h_s, h_n = R_bn^T h_b), intensity residuals |h| - F, E/N/U before/after, the fitted
-// ellipsoid {m : |W (m - o)| = F} (Li et al. 2023 eq. (9)), equal-area coverage of the sphere of
-// directions, the parameter table in the papers' forms with 1-sigma from cal.json -- and writes it
-// to DIR/data/ (report.json + CSVs). The script host/report/magvec_report.py only draws these into
-// PNGs and writes DIR/index.html.
+// `magvec report`: the numbers behind a calibration report. The C++ side computes
+// everything that is shown -- compensation with the canonical model (docs/conventions.md: h_s = W
+// (m - o), h_b = Rm^T h_s, h_n = R_bn^T h_b), intensity residuals |h| - F, E/N/U before/after, the
+// fitted ellipsoid {m : |W (m - o)| = F} (Li et al. 2023 eq. (9)), equal-area coverage of the
+// sphere of directions, the parameter table in the papers' forms with 1-sigma from cal.json -- and
+// writes it to DIR/data/ (report.json + CSVs). The script host/report/magvec_report.py only draws
+// these into PNGs and writes DIR/index.html.
 #pragma once
 
 #include <array>

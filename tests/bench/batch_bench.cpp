@@ -1,4 +1,4 @@
-// Google Benchmark of the batch calibration (issue 3): per-sample accumulation, the algebraic
+// Google Benchmark of the batch calibration: per-sample accumulation, the algebraic
 // ellipsoid solve, and the full one-step refinement at N = 60, 6000 and 10^6 samples.
 #include <benchmark/benchmark.h>
 

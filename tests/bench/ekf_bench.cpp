@@ -1,5 +1,6 @@
-// Per-update cost of the scalar EKF (Ge et al. 2017, ERRATA 002), float and double, and of the
-// predicted-intensity sigma. Samples are pre-generated; the filter is initialised before timing.
+// Per-update cost of the scalar EKF (Ge et al. 2017, docs/equations.md E-Ge), float and double, and
+// of the predicted-intensity sigma. Samples are pre-generated; the filter is initialised before
+// timing.
 #include <benchmark/benchmark.h>
 
 #include <random>

@@ -1,4 +1,4 @@
-// One sensor-loop iteration, as it runs on the device (issue 5): decode the ADS131M04 output frame
+// One sensor-loop iteration, as it runs on the device: decode the ADS131M04 output frame
 // (CRC, codes -> nT), decode the SBG CAN frames that arrived since the last sample and insert the
 // attitude into the AttitudeBuffer, align (slerp to the sample time), SensorLoop::process with the
 // EKF calibrator collecting (one EKF measurement update) and compensation. The bytes are recorded

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The image's UART record path under qemu (issue 8: "a UART RecordSink for hardware").
+"""The image's UART record path under qemu (a UART RecordSink for hardware).
 
 Runs the image twice: once with the records on the semihosting console (default), once with the
 option `uart`, the records going out through the polled CMSDK UART0 driver (mmio_uart.hpp) to

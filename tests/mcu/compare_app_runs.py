@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Runs the firmware image under qemu-system-arm and compares its report with the host twin.
 
-Modes (issue 8):
+Modes:
   double  M7 image (Scalar = double) vs magvec_app_host_double: bit-identical (every reported
           value, counter and record line);
   float   M4F image (Scalar = float) vs magvec_app_host_double: intensity RMSE within 1.1x, every

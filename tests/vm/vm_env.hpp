@@ -1,4 +1,4 @@
-// Helpers of the guest tests (tests/vm, issue 7): the guest's /init (toolchain/vm/init) exports
+// Helpers of the guest tests (tests/vm): the guest's /init (toolchain/vm/init) exports
 // where the kernel facilities are; these tests run only inside the VM, where a missing variable or
 // device is a failure of the guest setup, never a reason to skip.
 #pragma once

@@ -1,4 +1,4 @@
-// Guest test (VM, issue 7): the libgpiod data-ready driver (drivers/linux GpiodDataReadyLine) on
+// Guest test (VM): the libgpiod data-ready driver (drivers/linux GpiodDataReadyLine) on
 // a real kernel's gpio-sim chip (built out of tree by toolchain/vm/prepare-kernel, created by the
 // guest's /init through configfs). Edges are produced by writing pull-up / pull-down to the sim
 // line's `pull` attribute; they must arrive as events with kernel timestamps on the

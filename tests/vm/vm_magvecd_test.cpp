@@ -1,4 +1,4 @@
-// VM system test (issue 7, last item): magvecd end to end on real Linux drivers inside the guest.
+// VM system test: magvecd end to end on real Linux drivers inside the guest.
 // A "rig" in this process plays the Li 2023 scenario (drivers/sim Simulator + SimRig, fixed seed)
 // in real time through the guest kernel's devices:
 //   - INS: SimSbgIns's SBG CAN frames of each epoch, sent on vcan0 through a SocketCAN socket;

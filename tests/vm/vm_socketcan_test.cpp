@@ -1,4 +1,4 @@
-// Guest test (VM, issue 7): the SocketCAN driver (drivers/linux SocketCanBus) on a real kernel's
+// Guest test (VM): the SocketCAN driver (drivers/linux SocketCanBus) on a real kernel's
 // vcan0 receives the frames of a simulated SBG INS (drivers/sim SimSbgIns) sent on another
 // socket: kernel filters drop other IDs, kernel receive timestamps, error frames, a burst of
 // 10 000 frames paced at 1 kHz without loss, and candump-format logs replayed by can-utils'

@@ -1,4 +1,4 @@
-// Guest test (VM, issue 7): the spidev driver (drivers/linux SpidevBus) talks to the project's
+// Guest test (VM): the spidev driver (drivers/linux SpidevBus) talks to the project's
 // virtual ADS131M04 (toolchain/vm/magvec_vspi.c, a kernel SPI controller; spidev binds to its
 // device as /dev/spidev0.0) through the ADS131M04 codec and the Ads131Fluxgate driver, with the
 // data-ready line on gpio-sim. The model's samples are deterministic (ch0 = 2^22 cos(n deg),

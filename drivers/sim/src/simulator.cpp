@@ -1,6 +1,6 @@
 // Simulated fluxgate + INS (see simulator.hpp). Scenario presets reproduce the simulation setups of
 // Li et al. 2023 (sec. 4), Ge et al. 2017 (sec. 4) and the sine-fitting paper (sec. 3), with the
-// corrections of shared/seeds/ERRATA.md (000-8 field reading, 002-6 C matrix, 001-4 XZ fixtures).
+// corrections of docs/equations.md (E-Li-8 field reading, E-Ge-6 C matrix, E-Sine-4 XZ fixtures).
 #include "magvec/drivers/sim/simulator.hpp"
 
 #include <cmath>
@@ -60,7 +60,7 @@ core::SensorModel<double> li_truth() noexcept {
   return core::from_li(p);
 }
 
-// Li's Hg1 = [25022, -4053, 47374] read as (N, E, Down) (ERRATA 000-8) -> ENU.
+// Li's Hg1 = [25022, -4053, 47374] read as (N, E, Down) (docs/equations.md E-Li-8) -> ENU.
 Vec3<double> li_field() noexcept {
   return Vec3<double>(-4053.0, 25022.0, -47374.0);
 }

@@ -1,4 +1,4 @@
-// The firmware application (issue 8): a fixed, deterministic scenario run end to end on the MCU.
+// The firmware application: a fixed, deterministic scenario run end to end on the MCU.
 //   Simulator (survey scenario, Li et al. 2023 truth, 50 Hz, fixed seed) -> simulated ADS131M04
 //   (SPI + DRDY) and SBG INS (CAN) speaking the real bytes -> the real codecs (Ads131Fluxgate,
 //   CanAttitudeSource) -> AttitudeBuffer -> core::SensorLoop<Scalar, core::EkfCalibrator>

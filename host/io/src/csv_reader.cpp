@@ -1,4 +1,4 @@
-// Streaming CSV reader for magvec recordings (DESIGN.md "File formats"; rules in csv.hpp).
+// Streaming CSV reader for magvec recordings (docs/conventions.md#file-formats; rules in csv.hpp).
 #include <charconv>
 #include <cmath>
 #include <limits>

@@ -1,5 +1,6 @@
 // Tests of the simulated fluxgate + INS (drivers/sim/simulator.hpp): exact model inversion, paper
-// setups, determinism, fault rates, fixtures of ERRATA 001-4, and no heap use per sample.
+// setups, determinism, fault rates, fixtures of docs/equations.md E-Sine-4, and no heap use per
+// sample.
 #include "magvec/drivers/sim/simulator.hpp"
 
 #include <gtest/gtest.h>
@@ -377,9 +378,10 @@ TEST(Simulator, TurntableSweepsAndFixtures) {
   const double kz = p.k(2), sb = std::sin(p.beta_rad), sg = std::sin(p.gamma_rad),
                cg = std::cos(p.gamma_rad);
   const Case cases[] = {
-      {scenario_sine_xy(), kz * cg * b_up},  // ERRATA 001-1: about -37 uT
+      {scenario_sine_xy(), kz * cg * b_up},  // docs/equations.md E-Sine-1: about -37 uT
       {scenario_sine_xz(Fixture::kPlaneNormal), 0.0},
-      {scenario_sine_xz(Fixture::kHousingY), kz * sb * sg * b_up},  // ERRATA 001-4: about -379 nT
+      {scenario_sine_xz(Fixture::kHousingY),
+       kz * sb * sg * b_up},  // docs/equations.md E-Sine-4: about -379 nT
   };
   EXPECT_NEAR(cases[0].mean_z_minus_b0z, -37600, 100);
   EXPECT_NEAR(cases[2].mean_z_minus_b0z, -379, 1);

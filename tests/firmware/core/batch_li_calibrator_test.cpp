@@ -88,7 +88,7 @@ TEST(BatchLiCalibrator, SurveyManoeuvreIsDecimatedOverItsLengthAndRecoversTheTru
 
 TEST(BatchLiCalibrator, HeadingOnlyManoeuvreIsRefusedWithTheVerdictCode) {
   // Level platform turning about the vertical only: the store fills (coverage of one band) and the
-  // solve refuses with the ERRATA 000-4 verdict instead of returning a bad calibration.
+  // solve refuses with the docs/equations.md E-Li-4 verdict instead of returning a bad calibration.
   auto cal = std::make_unique<Cal>(config());
   const SensorModel<double> truth = from_li(test_setup::paper_li());
   const Vec3<double> h_n = test_setup::paper_h_n();

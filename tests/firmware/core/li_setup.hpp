@@ -1,5 +1,5 @@
-// Test helpers: the simulation setups of Li et al. 2023 (ERRATA 000-8) built from the core's own
-// forward model (SensorModel::predict_raw, r_bn_from_li), deterministic from a seed.
+// Test helpers: the simulation setups of Li et al. 2023 (docs/equations.md E-Li-8) built from the
+// core's own forward model (SensorModel::predict_raw, r_bn_from_li), deterministic from a seed.
 #pragma once
 
 #include <cmath>

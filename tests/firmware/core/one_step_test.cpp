@@ -61,7 +61,8 @@ TEST(OneStep, NoiseFreeCalibrationBoxIsRecoveredExactly) {
   EXPECT_EQ(r.counts.used, 18U);
 }
 
-// Monte Carlo of the paper setup (ERRATA 000-7/8 floors): 60 random attitudes, 0.3 nT, 0.015 deg.
+// Monte Carlo of the paper setup (docs/equations.md E-Li-7/E-Li-8 floors): 60 random attitudes, 0.3
+// nT, 0.015 deg.
 TEST(OneStep, MonteCarloReachesTheStatisticalFloor) {
   constexpr int kSeeds = 200;
   const LiParams<double> t = paper_li();

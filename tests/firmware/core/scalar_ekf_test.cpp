@@ -1,6 +1,6 @@
-// Tests of the Ge et al. 2017 scalar EKF (ERRATA 002): exact recovery, Monte Carlo against the
-// statistical floors, the paper's printed settings, float32, spikes, bad input, divergence, drift,
-// allocation-free update path.
+// Tests of the Ge et al. 2017 scalar EKF (docs/equations.md E-Ge): exact recovery, Monte Carlo
+// against the statistical floors, the paper's printed settings, float32, spikes, bad input,
+// divergence, drift, allocation-free update path.
 #include "magvec/core/scalar_ekf.hpp"
 
 #include <gtest/gtest.h>
@@ -214,7 +214,7 @@ TEST(ScalarEkf, PaperSetupReachesTheStatisticalFloorInOnePass) {
   print("default (quadric start), double", mc);
   std::printf("[ekf-mc]   predicted b sigma %.1f %.1f %.1f nT, predicted intensity sigma %.1f nT\n",
               mc.b_sigma_mean(0), mc.b_sigma_mean(1), mc.b_sigma_mean(2), mc.intensity_sigma_mean);
-  // ERRATA 002-6 floors: intensity RMSE 18.1 nT, b SD 13/10/11 nT.
+  // docs/equations.md E-Ge-6 floors: intensity RMSE 18.1 nT, b SD 13/10/11 nT.
   EXPECT_LT(mc.median_rmse, 1.2 * 18.1);
   EXPECT_LT(mc.max_rmse, 3.0 * 18.1);
   EXPECT_LT(mc.b_sd(0), 1.3 * 13.0);
@@ -235,7 +235,7 @@ TEST(ScalarEkf, PaperPrintedSettingsFailAsDocumentedInErrata) {
   const Scenario s;
   const McSummary mc = monte_carlo<double>(s, EkfConfig<double>::paper(), 60);
   print("paper() printed settings", mc);
-  // ERRATA 002-3: bias SD 85-101 nT (vs the floor of 13/10/11) and some runs reflected.
+  // docs/equations.md E-Ge-3: bias SD 85-101 nT (vs the floor of 13/10/11) and some runs reflected.
   EXPECT_GT(mc.b_sd.minCoeff(), 3.0 * 13.0);
   EXPECT_GT(mc.median_rmse, 2.0 * 18.1);
   EXPECT_GT(mc.reflected, 0);
@@ -283,7 +283,7 @@ TEST(ScalarEkf, OnePassStrategyComparison) {
 }
 
 TEST(ScalarEkf, Float32WithNormalisationMatchesFloat64) {
-  // Large offsets, low noise: the case that breaks raw-nT float32 (ERRATA 002-5).
+  // Large offsets, low noise: the case that breaks raw-nT float32 (docs/equations.md E-Ge-5).
   Scenario s;
   s.b = {20000, -20000, 20000};
   s.sigma = 2;
@@ -454,9 +454,10 @@ TEST(ScalarEkf, SlowlyTurningPlatformInitialisesFromSpreadSamples) {
 }
 
 TEST(ScalarEkf, GivenStartDivergesOnLargeOffsetsLowNoiseAndRecoversByRefit) {
-  // ERRATA 002-3's "sound" start (identity + mean of the measurements) with 20 uT offsets and 2 nT
-  // noise: without protection the plain EKF ends 30-500x above the floor or diverges; with
-  // divergence detection it restarts from a fit of new samples and ends at the floor.
+  // The sound start of docs/equations.md E-Ge-3 (identity + mean of the measurements) with 20 uT
+  // offsets and 2 nT noise: without protection the plain EKF ends 30-500x above the floor or
+  // diverges; with divergence detection it restarts from a fit of new samples and ends at the
+  // floor.
   Scenario s;
   s.b = {20000, -20000, 20000};
   s.sigma = 2;

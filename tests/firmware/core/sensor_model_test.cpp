@@ -64,7 +64,7 @@ TEST(SensorModel, LiDecompositionFollowsErrataNotPrintedShortcut) {
   const Mat3<double> g = m.g();
   const Mat3<double> g_inv = g.inverse();
   for (int i = 0; i < 3; ++i) {
-    EXPECT_NEAR(std::sqrt(g_inv(i, i)), p.ks(i), 1e-13);  // ERRATA 000-1
+    EXPECT_NEAR(std::sqrt(g_inv(i, i)), p.ks(i), 1e-13);  // docs/equations.md E-Li-1
   }
   // The printed shortcut ks = 1/sqrt(G_ii) is off by 0.1-0.25 % here.
   const double shortcut_err_y = std::abs(1.0 / std::sqrt(g(1, 1)) - p.ks(1)) / p.ks(1);

@@ -14,7 +14,7 @@ namespace {
 using test_setup::kDeg;
 using test_setup::sd;
 
-// Seed 001 section 3.1 / ERRATA 001-6.
+// Jia et al. 2019 section 3.1 / docs/equations.md E-Sine-6.
 SineParams<double> paper_sine() {
   SineParams<double> p;
   p.alpha_rad = 1.35 * kDeg;
@@ -79,12 +79,14 @@ TEST(SineFit, NoiseFreeRecoveryBothFixturesBothDirections) {
 }
 
 TEST(SineFit, XyOffsetOfZIsNotTheZOffset) {
-  // ERRATA 001-1: D_z of the XY sweep carries kz cos(gamma) B_vertical (about -37 uT).
+  // docs/equations.md E-Sine-1: D_z of the XY sweep carries kz cos(gamma) B_vertical (about -37
+  // uT).
   std::mt19937_64 rng(2);
   SineSweep<double> xy, xz;
   sweep(paper_sine(), SineFixture::kHousingY, 0, 1, rng, &xy, &xz);
   EXPECT_NEAR(xy.fit().offset(2), -37.5e3, 1e3);
-  // ERRATA 001-4: with the housing-y fixture D'_z is off B0z by kz sin(b) sin(g) B_vertical.
+  // docs/equations.md E-Sine-4: with the housing-y fixture D'_z is off B0z by kz sin(b) sin(g)
+  // B_vertical.
   EXPECT_NEAR(xz.fit().offset(2) - 123.7, -379, 2);
 }
 

@@ -181,7 +181,7 @@ TEST_F(Runners, EkfAcceptsNoisyFullCoverageDataWithDefaults) {
   EXPECT_LT(run.cal.noise.mag_sigma_nT, 10.0);
   EXPECT_NEAR(run.cal.noise.mag_nT, 200.0, 4 * run.cal.noise.mag_sigma_nT);
   EXPECT_TRUE(run.warnings.empty());
-  // ERRATA 002-6: the floor of 1000 samples at 200 nT is an intensity RMSE of 18.1 nT.
+  // docs/equations.md E-Ge-6: the floor of 1000 samples at 200 nT is an intensity RMSE of 18.1 nT.
   const double rmse = truth_rmse(run.model, d);
   std::printf("[ekf-runner] 200 nT: noise %.1f +- %.1f nT, intensity RMSE %.1f nT (floor 18.1)\n",
               run.cal.noise.mag_nT, run.cal.noise.mag_sigma_nT, rmse);

@@ -81,7 +81,8 @@ TEST_F(Calibrate, LiOneStepRecoversTheTruthAndApplyReachesTheNoise) {
     EXPECT_NEAR(e.o_rad(i) * kDeg, t.o_rad(i) * kDeg, 4 * cal.sigma.at("O_deg")[k]) << i;
     EXPECT_NEAR(e.kof(i), t.kof(i), 4 * cal.sigma.at("Kof_nT")[k]) << i;
     EXPECT_NEAR(e.rm_rad(i) * kDeg, t.rm_rad(i) * kDeg, 4 * cal.sigma.at("Rm_deg")[k]) << i;
-    // The 1-sigma are at the statistical floor of ERRATA 000 (Rm 0.0018-0.0022 deg, Kof 0.07 nT).
+    // The 1-sigma are at the statistical floor of docs/equations.md E-Li (Rm 0.0018-0.0022 deg, Kof
+    // 0.07 nT).
     EXPECT_LT(cal.sigma.at("Rm_deg")[k], 0.004);
     EXPECT_LT(cal.sigma.at("Kof_nT")[k], 0.15);
   }
@@ -135,13 +136,15 @@ TEST_F(Calibrate, EkfRecoversGAndBAtTheFloorAndTraces) {
   EXPECT_EQ(cal.provenance.method, "ekf");
   EXPECT_TRUE(cal.model.rm.isApprox(magvec::core::Quat<double>::Identity()));
   const magvec::drivers::sim::ScenarioConfig truth = magvec::drivers::sim::scenario_ge2017();
-  // b within 4x the floor of ERRATA 002-6 (13/10/11 nT); the reported 1-sigma near that floor.
+  // b within 4x the floor of docs/equations.md E-Ge-6 (13/10/11 nT); the reported 1-sigma near that
+  // floor.
   const double floor_b[3] = {13, 10, 11};
   for (int i = 0; i < 3; ++i) {
     EXPECT_NEAR(cal.model.o(i), truth.truth.o(i), 4 * floor_b[i]) << i;
     EXPECT_NEAR(cal.sigma.at("b_nT")[static_cast<std::size_t>(i)], floor_b[i], 0.3 * floor_b[i]);
   }
-  // G (not C^-1, ERRATA 002-2): parameter-induced intensity RMSE within 3x the 18.1 nT floor.
+  // G (not C^-1, docs/equations.md E-Ge-2): parameter-induced intensity RMSE within 3x the 18.1 nT
+  // floor.
   EXPECT_LT(parameter_induced_rmse(cal.model, file("ge.csv")), 3 * 18.1);
   EXPECT_LT((cal.model.g() - truth.truth.g()).cwiseAbs().maxCoeff(), 3e-3);
   // Trace: header + one row per sample.
@@ -158,7 +161,7 @@ TEST_F(Calibrate, EkfRecoversGAndBAtTheFloorAndTraces) {
   EXPECT_NE(header.find(",b_z_nT,sigma_cinv00,"), std::string::npos) << header;
   EXPECT_NE(header.find(",sigma_b_z_nT,nis,intensity_sigma_nT"), std::string::npos) << header;
 
-  // Two passes in float32 trace 2000 rows; paper settings are refused (ERRATA 002-3).
+  // Two passes in float32 trace 2000 rows; paper settings are refused (docs/equations.md E-Ge-3).
   const Result r2 =
       run("calibrate --method ekf --noise-nT 200 --float32 --passes 2 --in " + file("ge.csv") +
           " --trace " + file("trace2.csv") + " --out " + file("ge2.json"));
@@ -187,7 +190,8 @@ TEST_F(Calibrate, SineRecoversTheAngles) {
   EXPECT_NEAR(p.beta_rad * kDeg, 32.7, 4 * cal.sigma.at("beta_deg")[0]);
   EXPECT_NEAR(p.gamma_rad * kDeg, 1.07, 4 * cal.sigma.at("gamma_deg")[0]);
   EXPECT_NEAR(cal.sine->inclination_rad * kDeg, 43.0, 4 * cal.sigma.at("inclination_deg")[0]);
-  // The propagated alpha 1-sigma is the ERRATA 001-6 scatter at 5 nT (0.0025 deg) within 1.3x.
+  // The propagated alpha 1-sigma is the docs/equations.md E-Sine-6 scatter at 5 nT (0.0025 deg)
+  // within 1.3x.
   EXPECT_NEAR(cal.sigma.at("alpha_deg")[0], 0.0025, 0.3 * 0.0025);
   EXPECT_LT(cal.quality.residual_rms_after_nT, 8.0);
 }

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# End-to-end test of magvecd (issue 6) over real LCM udpm inside a private network namespace
+# End-to-end test of magvecd over real LCM udpm inside a private network namespace
 # (loopback with multicast, ttl=0: nothing leaves the namespace):
 #   1. lcm-logger records while `magvecd --sim` runs ~4 s: message rates as configured, the
 #      calibration applies and is persisted, `magvec ctl status` answers, SIGTERM -> exit 0 < 1 s;

@@ -1,4 +1,4 @@
-// Host-in-the-loop acceptance test (issue 5, "What it must show"): 10 minutes of simulated survey
+// Host-in-the-loop acceptance test: 10 minutes of simulated survey
 // (scenario_survey: fluxgate 200 Hz through the ADS131M04 SPI codec, INS 100 Hz through the SBG
 // CAN codec, 0.3 nT and 0.015 deg noise) with a few % of injected faults, calibrated IN THE LOOP
 // by the Li batch calibrator (BatchLiCalibrator, one-step fit), then:

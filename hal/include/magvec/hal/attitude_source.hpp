@@ -1,5 +1,5 @@
 // HAL: a source of INS attitude samples already converted to the core convention
-// (DESIGN.md "Conventions": ENU navigation frame, INS body Right-Forward-Up, passive R_bn,
+// (docs/conventions.md: ENU navigation frame, INS body Right-Forward-Up, passive R_bn,
 // h_b = R_bn h_n). The quaternion q_nb is the one of frames.hpp r_bn_from_quat: it rotates body
 // vectors into ENU, so R_bn = R(q_nb)^T.
 #pragma once

@@ -1,4 +1,4 @@
-// HAL: monotonic time base (DESIGN.md "Conventions": uint64 microseconds, monotonic).
+// HAL: monotonic time base (docs/conventions.md: uint64 microseconds, monotonic).
 #pragma once
 
 #include <cstdint>

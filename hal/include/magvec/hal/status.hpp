@@ -1,5 +1,5 @@
-// Common result codes of the HAL (DESIGN.md "HAL"). Every HAL call reports failure through a
-// Status value: no exceptions, no errno, no OS types. Drivers map their transport errors onto it.
+// Common result codes of the HAL (docs/architecture.md#hal). Every HAL call reports failure through
+// a Status value: no exceptions, no errno, no OS types. Drivers map their transport errors onto it.
 #pragma once
 
 #include <cstdint>

@@ -1,9 +1,9 @@
 // Triaxial analogue fluxgate read through a TI ADS131M04 (frame format: ads131m04.hpp), with the
 // ADC's DRDY output on a GPIO line. Implements hal::MagnetometerSource.
-// Conversion (DESIGN.md "Drivers"): B_axis[nT] = code / 2^23 * (VREF / gain) * k_axis[nT/V], with
-// k_axis the fluxgate electronics' transfer coefficient (e.g. 10 uT/V = 1e4 nT/V).
-// Health checks per sample: output CRC, WLENGTH, device RESET bit, DRDY bits of the used channels,
-// saturation (code at +/- full scale), stuck channel (the same code N times in a row).
+// Conversion (docs/architecture.md#drivers): B_axis[nT] = code / 2^23 * (VREF / gain) *
+// k_axis[nT/V], with k_axis the fluxgate electronics' transfer coefficient (e.g. 10 uT/V = 1e4
+// nT/V). Health checks per sample: output CRC, WLENGTH, device RESET bit, DRDY bits of the used
+// channels, saturation (code at +/- full scale), stuck channel (the same code N times in a row).
 #pragma once
 
 #include <array>

@@ -1,4 +1,4 @@
-// Power-cut-safe two-slot parameter store over a hal::Flash (DESIGN.md "HAL": ParamStore).
+// Power-cut-safe two-slot parameter store over a hal::Flash (docs/architecture.md#hal: ParamStore).
 //
 // Slot layout: one record of param_record.hpp at the start of each slot (each slot a whole
 // number of sectors); its magic 'MVPS' at offset 0 is programmed LAST: the commit marker.

@@ -1,4 +1,4 @@
-// Portable double-precision elementary functions (issue 8: the M7 double image and its host twin
+// Portable double-precision elementary functions (the M7 double image and its host twin
 // must agree bit for bit). newlib (fdlibm) and glibc compute sin, cos, atan2, asin, log, ... with
 // different algorithms, neither correctly rounded in general, so their results may differ in the
 // last bit; one such bit in the simulator or the calibrator can flip a rounding downstream (an

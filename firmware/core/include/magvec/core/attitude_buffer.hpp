@@ -1,5 +1,5 @@
-// AttitudeBuffer (DESIGN.md "Core" item 6): a fixed-capacity ring of timestamped INS attitudes and
-// their interpolation to magnetometer sample times.
+// AttitudeBuffer (docs/architecture.md#sample-pipeline): a fixed-capacity ring of timestamped INS
+// attitudes and their interpolation to magnetometer sample times.
 // - Attitudes are unit quaternions q_nb (body RFU -> ENU, R_bn = R(q_nb)^T, frames.hpp).
 // - Interpolation: slerp between the two samples that bracket t (constant angular rate between
 //   INS epochs), exact for a rotation about a fixed axis at constant rate.

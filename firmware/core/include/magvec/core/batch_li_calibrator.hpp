@@ -1,15 +1,15 @@
-// BatchLiCalibrator: the batch calibration of Li et al. 2023 as corrected by ERRATA 000 (one-step
-// 14-parameter fit, 000-6, by default; see batch_calibrator.hpp) behind the SensorLoop Calibrator
-// contract (sensor_loop.hpp: begin/add/progress/ready/solve).
+// BatchLiCalibrator: the batch calibration of Li et al. 2023 as corrected by docs/equations.md E-Li
+// (one-step 14-parameter fit, 000-6, by default; see batch_calibrator.hpp) behind the SensorLoop
+// Calibrator contract (sensor_loop.hpp: begin/add/progress/ready/solve).
 //
 // Collection: the store has a fixed Capacity, while the loop delivers hundreds of samples per
 // second, so add() keeps a sample only if the attitude (or, without attitude, the raw field
 // direction) has turned by at least min_step_deg since the last kept sample. Consecutive samples
-// of a slow manoeuvre carry almost the same information (ERRATA 000-7: the floors are set by the
-// variety of attitudes); decimating by motion spreads the store over the whole manoeuvre instead
-// of its first seconds. A sample that is merely skipped by the decimation is "used" from the
-// loop's point of view (kUsed; it is not a fault) and counted in counts().decimated.
-// Samples without attitude are rejected (kRejected) when the method needs attitude.
+// of a slow manoeuvre carry almost the same information (docs/equations.md E-Li-7: the floors are
+// set by the variety of attitudes); decimating by motion spreads the store over the whole manoeuvre
+// instead of its first seconds. A sample that is merely skipped by the decimation is "used" from
+// the loop's point of view (kUsed; it is not a fault) and counted in counts().decimated. Samples
+// without attitude are rejected (kRejected) when the method needs attitude.
 //
 // Readiness: count >= min_samples and coverage >= min_coverage, where coverage is the fraction of
 // the 32 equal-area cells (BatchCalibrator's grid) hit by the kept raw field directions (raw, not

@@ -1,4 +1,4 @@
-// Per-sample compensation with the canonical model (DESIGN.md "Canonical sensor model"):
+// Per-sample compensation with the canonical model (docs/conventions.md#canonical-sensor-model):
 //   h_s = W (m - o)   orthogonal sensor frame, |h_s| the calibrated total field
 //   h_b = Rm^T h_s    INS body frame
 //   h_n = R_bn^T h_b  navigation frame (ENU)

@@ -1,15 +1,15 @@
-// EkfCalibrator: the online scalar EKF of Ge et al. 2017 (ERRATA 002; scalar_ekf.hpp) behind the
-// SensorLoop Calibrator contract (sensor_loop.hpp), plus the misalignment step it needs to give
-// vector output.
+// EkfCalibrator: the online scalar EKF of Ge et al. 2017 (docs/equations.md E-Ge; scalar_ekf.hpp)
+// behind the SensorLoop Calibrator contract (sensor_loop.hpp), plus the misalignment step it needs
+// to give vector output.
 //
 // Why a misalignment step (DECISION): a scalar (|h|) method observes only G = W^T W and o
-// (ERRATA 002-2): the EKF's W is known up to an arbitrary rotation and its Rm is the identity, so
-// h_n computed from an EKF-only model is rotated away from the INS frame by that unknown rotation
-// (degrees to tens of degrees: the EKF pins W upper-triangular). Vector output therefore needs
-// attitude. With `align` on (default) the adapter keeps a small motion-decimated store of
-// {raw m, F, R_bn} while the filter runs and, at solve(), fits the rotation and the local field
-// with the joint fit of ERRATA 000-5 (misalignment.hpp joint_rm_hn, closed-form start, so a large
-// rotation is fine) for the EKF's (W, o); the result is re-expressed in Li form
+// (docs/equations.md E-Ge-2): the EKF's W is known up to an arbitrary rotation and its Rm is the
+// identity, so h_n computed from an EKF-only model is rotated away from the INS frame by that
+// unknown rotation (degrees to tens of degrees: the EKF pins W upper-triangular). Vector output
+// therefore needs attitude. With `align` on (default) the adapter keeps a small motion-decimated
+// store of {raw m, F, R_bn} while the filter runs and, at solve(), fits the rotation and the local
+// field with the joint fit of docs/equations.md E-Li-5 (misalignment.hpp joint_rm_hn, closed-form
+// start, so a large rotation is fine) for the EKF's (W, o); the result is re-expressed in Li form
 // (canonicalize_li). If the attitudes do not determine the rotation the solve is refused
 // (kAlignUnobservable etc.): never a silently misaligned calibration. With `align` off the model
 // is the filter's (Rm = I) and aligned() is false: only |h| and h_s are meaningful; the

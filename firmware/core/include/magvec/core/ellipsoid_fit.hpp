@@ -1,5 +1,5 @@
 // Ellipsoid fit with a scalar reference field: Li et al. 2023 eq. (9)-(15), decomposition of G into
-// Ks, Ko (ERRATA 000-1, via li_scale_and_angles) and Kof.
+// Ks, Ko (docs/equations.md E-Li-1, via li_scale_and_angles) and Kof.
 //
 //   (m_i - o)^T G (m_i - o) = F_i^2,   G = W^T W,   |W (m_i - o)| = F_i
 //
@@ -89,7 +89,8 @@ Mat3<Scalar> sym_from6(const Vec<Scalar, 6>& v) noexcept {
   return g;
 }
 
-// Li decomposition of G (ERRATA 000-1); fills w, li; false when G^-1 is not positive definite.
+// Li decomposition of G (docs/equations.md E-Li-1); fills w, li; false when G^-1 is not positive
+// definite.
 template <typename Scalar>
 bool decompose_g(const Mat3<Scalar>& g, const Vec3<Scalar>& o,
                  EllipsoidSolution<Scalar>* out) noexcept {

@@ -1,4 +1,4 @@
-// Frames and attitude conventions (DESIGN.md "Conventions").
+// Frames and attitude conventions (docs/conventions.md).
 // Navigation frame n = ENU. Rotation matrices are passive (frame rotations). R_bn maps n-frame
 // components to INS body components: h_b = R_bn h_n. Li et al. 2023 eq. (2):
 // R_bn = Ry(gamma) Rx(beta) Rz(alpha), body axes Right-Forward-Up, alpha right-handed about Up.

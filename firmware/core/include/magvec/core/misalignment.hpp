@@ -1,5 +1,6 @@
 // Misalignment Rm between the INS body frame and the orthogonalised magnetometer frame, given the
-// sensor model (W, o) from the ellipsoid fit. Li et al. 2023 eq. (15)-(21) as corrected by ERRATA:
+// sensor model (W, o) from the ellipsoid fit. Li et al. 2023 eq. (15)-(21) as corrected in
+// docs/equations.md:
 //  * Plane compression (000-2, 000-3): f_i = (R_i e3)^T Rm^T h_s(i), the Up component of the
 //    calibrated field in the geographic frame; cost sum_{i<j} (f_i - f_j)^2 = N sum (f_i - mean
 //    f)^2, accumulated in one O(N) pass per Gauss-Newton iteration (O(1) memory).

@@ -1,5 +1,5 @@
-// One-step (efficient) calibration, ERRATA 000-6: a weighted least-squares fit of all 14 parameters
-// of Li et al. 2023 eq. (7) at once,
+// One-step (efficient) calibration, docs/equations.md E-Li-6: a weighted least-squares fit of all
+// 14 parameters of Li et al. 2023 eq. (7) at once,
 //   ks (3), O (3), Kof (3), Rm angles (3), direction of h_n (2; its magnitude is tied to the scalar
 //   reference: h_n(i) = F_i d, |d| = 1),
 // with the vector residual of every sample in the geographic frame
@@ -333,7 +333,7 @@ class OneStepFit {
     if (sums->count < 5) return false;
     Scalar cost = sums->chi2 + prior_cost(opt.prior, norm, *p);
     Scalar lambda = Scalar(1e-4);
-    const Scalar kMaxLambda = Scalar(1e10);
+    constexpr Scalar kMaxLambda = Scalar(1e10);
     int it = 0;
     bool converged = false;
     for (; it < opt.max_iterations && !converged; ++it) {

@@ -1,8 +1,9 @@
 // Fixed-capacity store of calibration samples (raw magnetometer reading, scalar reference field,
 // INS attitude) for the batch estimators of Li et al. 2023 (ellipsoid refinement, misalignment,
-// one-step fit, ERRATA 000-2..6). Plain arrays, no heap: a Capacity of 256 fits a Cortex-M4F.
-// Also holds the normalisation (centre and scale) every batch solver works in: fields are divided
-// by the reference magnitude so float32 keeps precision (DESIGN.md "Core").
+// one-step fit, docs/equations.md E-Li-2..E-Li-6). Plain arrays, no heap: a Capacity of 256 fits a
+// Cortex-M4F. Also holds the normalisation (centre and scale) every batch solver works in: fields
+// are divided by the reference magnitude so float32 keeps precision
+// (docs/equations.md#normalisation).
 #pragma once
 
 #include <algorithm>

@@ -1,7 +1,8 @@
-// SensorLoop: the per-sample pipeline of DESIGN.md "Core" item 7, free of any driver or OS type.
-// Per magnetometer sample: attitude aligned by the caller-supplied attitude (see AttitudeBuffer),
-// the active calibrator fed, the sample compensated with the *active* calibration, one OutputRecord
-// emitted. A calibration state machine decides when new parameters replace the active ones:
+// SensorLoop: the per-sample pipeline of docs/architecture.md#sample-pipeline, free of any driver
+// or OS type. Per magnetometer sample: attitude aligned by the caller-supplied attitude (see
+// AttitudeBuffer), the active calibrator fed, the sample compensated with the *active* calibration,
+// one OutputRecord emitted. A calibration state machine decides when new parameters replace the
+// active ones:
 //   idle -> collecting (progress) -> solving -> validating (held-out samples) -> applied |
 //   failed(reason)
 // The previous calibration stays active until a new one validates.

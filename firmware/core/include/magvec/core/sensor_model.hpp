@@ -1,7 +1,7 @@
-// Canonical sensor model (DESIGN.md) and exact conversions to each paper's parameters.
+// Canonical sensor model (docs/conventions.md) and exact conversions to each paper's parameters.
 //   m = A Rm R_bn h_n + o,   stored as W = A^-1, o, Rm (unit quaternion, INS body -> sensor frame).
 // Li et al. 2023 eq. (4)-(7): A = Ks Ko, o = Kof, Rm = Ry(gm) Rx(bm) Rz(am); G decomposed per
-// ERRATA 000-1 (ks_i = sqrt((G^-1)_ii), not the printed 1/sqrt(G_ii)).
+// docs/equations.md E-Li-1 (ks_i = sqrt((G^-1)_ii), not the printed 1/sqrt(G_ii)).
 // Ge et al. 2017 eq. (13)-(14): Hm = C Hi + b with Hi in the carrier (INS body) frame: C^-1 = Rm^T
 // W. Sine-fitting paper eq. (1): m = K B + B0, K lower triangular, B in the fixture frame.
 #pragma once
@@ -86,7 +86,7 @@ SensorModel<Scalar> from_li(const LiParams<Scalar>& p) noexcept {
   return m;
 }
 
-// Ks and O from G^-1 = A A^T (ERRATA 000-1); on success also returns Ks Ko in *ksko.
+// Ks and O from G^-1 = A A^T (docs/equations.md E-Li-1); on success also returns Ks Ko in *ksko.
 template <typename Scalar>
 ConversionStatus li_scale_and_angles(const Mat3<Scalar>& g_inv, Vec3<Scalar>* ks,
                                      Vec3<Scalar>* o_rad, Mat3<Scalar>* ksko) noexcept {

@@ -1,4 +1,5 @@
-// Turntable calibration by sine fitting (seed 001, eq. 1-17), with the corrections of ERRATA 001:
+// Turntable calibration by sine fitting (Jia et al. 2019, eq. 1-17), with the corrections of
+// docs/equations.md E-Sine:
 //  * each axis of each sweep is fitted by linear least squares as a sin(theta) + b cos(theta) + D
 //    = A sin(theta + phi) + D (streaming 3x3 normal equations, O(1) memory, no iteration);
 //  * signed, turn-direction independent angles (001-3):
@@ -157,12 +158,12 @@ SineSolution<Scalar> solve_sine(const SineSweep<Scalar>& xy_sweep,
   const SweepFit<Scalar>& a = out.xy;
   const SweepFit<Scalar>& b = out.xz;
   SineParams<Scalar> p;
-  // XY sweep: alpha, beta (ERRATA 001-3).
+  // XY sweep: alpha, beta (docs/equations.md E-Sine-3).
   const Scalar dyx = wrap_pi(a.phase_rad(1) - a.phase_rad(0));
   p.alpha_rad = kHalfPi - abs(dyx);
   p.beta_rad =
       (dyx < Scalar(0) ? Scalar(-1) : Scalar(1)) * wrap_pi(a.phase_rad(2) - a.phase_rad(0));
-  const Scalar ky_kx = a.amplitude(1) / a.amplitude(0);  // ERRATA 001-2
+  const Scalar ky_kx = a.amplitude(1) / a.amplitude(0);  // docs/equations.md E-Sine-2
   // XZ sweep: gamma, kz / kx.
   const Scalar phi = abs(wrap_pi(b.phase_rad(2) - b.phase_rad(0)));
   const Scalar cb = cos(p.beta_rad), sb = sin(p.beta_rad);

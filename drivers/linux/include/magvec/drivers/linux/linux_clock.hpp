@@ -1,6 +1,6 @@
 // Linux transports: the hal::Clock of magvecd. CLOCK_MONOTONIC in microseconds; every Linux
 // driver converts its kernel timestamps (SocketCAN receive time, GPIO line events) onto this base
-// so that attitude and magnetometer samples can be matched (DESIGN.md "Conventions": uint64 us).
+// so that attitude and magnetometer samples can be matched (docs/conventions.md: uint64 us).
 #pragma once
 
 #include <cstdint>

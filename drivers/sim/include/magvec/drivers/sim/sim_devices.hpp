@@ -1,5 +1,5 @@
-// Simulated devices that speak the same bytes as the real ones (DESIGN.md "Drivers: simulated
-// devices"), driven by the deterministic Simulator (simulator.hpp):
+// Simulated devices that speak the same bytes as the real ones (docs/architecture.md#simulation),
+// driven by the deterministic Simulator (simulator.hpp):
 //   - SimAds131Device: TI ADS131M04 front end of a 3-axis analogue fluxgate (frame format:
 //     ads131m04.hpp) behind hal::SpiBus + hal::DataReadyLine.
 //   - SimSerialFluxgate: a fluxgate writing NMEA-like ASCII lines (serial_fluxgate.hpp) into a

@@ -1,9 +1,10 @@
-// Simulated fluxgate + INS following the canonical model of DESIGN.md:
+// Simulated fluxgate + INS following the canonical model of docs/conventions.md:
 //   m(t) = A Rm R_bn(t) h_n(t) + o(t) + noise (+ spikes, dropouts),
 // with the papers' simulation setups as scenario presets:
 //   Li et al. 2023 (60 random attitudes, INS angle noise), Ge et al. 2017 (1000 random directions,
-//   no INS), the sine-fitting turntable paper (XY and XZ sweeps, both XZ fixtures of ERRATA 001-4),
-//   and a survey (calibration manoeuvre at 200 Hz followed by survey lines with small tilt).
+//   no INS), the sine-fitting turntable paper (XY and XZ sweeps, both XZ fixtures of
+//   docs/equations.md E-Sine-4), and a survey (calibration manoeuvre at 200 Hz followed by survey
+//   lines with small tilt).
 // Deterministic from a seed; heap-free, exception-free and noexcept so it can run in a bare-metal
 // image. Each random effect has its own generator stream, so enabling one effect (e.g. spikes) does
 // not change the draws of another (e.g. the magnetometer noise).
@@ -46,7 +47,7 @@ enum class AttitudePattern : std::uint8_t {
   kRotation,         // continuous rotation: constant heading rate, sinusoidal pitch and roll
 };
 
-// XZ-sweep fixture geometry (ERRATA 001-4).
+// XZ-sweep fixture geometry (docs/equations.md E-Sine-4).
 enum class Fixture : std::uint8_t {
   kPlaneNormal,  // the turntable axis is the normal of the actual Xm-Zm sensing plane
   kHousingY,     // the turntable axis is the housing (fixture) y axis
@@ -122,19 +123,21 @@ struct ScenarioConfig {
 
 // Paper setups (defaults of the scenario functions).
 // Li et al. 2023: Ks diag(1.08, 1.02, 1.033), O = [1.7, 3.5, 2.1] deg, Kof = [4.9, 3.4, 0.7] nT,
-// Rm angles [5.7, 2.1, 3.5] deg; Hg1 = [25022, -4053, 47374] read as (N, E, Down) per ERRATA 000-8,
-// i.e. h_n = [-4053, 25022, -47374] ENU (|h| = 53729 nT); 60 random attitudes, 0.3 nT, 0.015 deg.
+// Rm angles [5.7, 2.1, 3.5] deg; Hg1 = [25022, -4053, 47374] read as (N, E, Down) per
+// docs/equations.md E-Li-8, i.e. h_n = [-4053, 25022, -47374] ENU (|h| = 53729 nT); 60 random
+// attitudes, 0.3 nT, 0.015 deg.
 ScenarioConfig scenario_li2023() noexcept;
 // Ge et al. 2017: F = 45306 nT (h_n at 60 deg inclination, magnetic north), 1000 random directions,
-// b = [600, 700, 750] nT, C per ERRATA 002-6 (truth W = C^-1, Rm = I), 200 nT per axis, no INS.
+// b = [600, 700, 750] nT, C per docs/equations.md E-Ge-6 (truth W = C^-1, Rm = I), 200 nT per axis,
+// no INS.
 ScenarioConfig scenario_ge2017() noexcept;
 // Sine-fitting paper: alpha = 1.35, beta = 32.7, gamma = 1.07 deg, k = (0.909, 1.146, 1.103),
 // B0 = (143, 97.4, 123.7) nT, |B| = 50000 nT, inclination 43 deg, 36 steps of 10 deg, 5 nT noise.
 // Truth W = K^-1, o = B0, Rm = I: the body frame is the fixture frame of eq. (1).
 // XY sweep: the table turns about the normal of the Xm-Ym plane (fixture z, vertical).
 ScenarioConfig scenario_sine_xy() noexcept;
-// XZ sweep with the fixture of ERRATA 001-4: turntable_mount maps nav Up to the plane normal
-// (Xm x Zm direction flipped to point along +y) or to the housing +y axis.
+// XZ sweep with the fixture of docs/equations.md E-Sine-4: turntable_mount maps nav Up to the plane
+// normal (Xm x Zm direction flipped to point along +y) or to the housing +y axis.
 ScenarioConfig scenario_sine_xz(Fixture fixture = Fixture::kPlaneNormal) noexcept;
 // Survey: Li truth and field, 200 Hz, calibration manoeuvre (3 full heading turns, +-30 deg
 // pitch/roll) then 4 survey lines with alternating heading N/S and a few degrees of tilt.

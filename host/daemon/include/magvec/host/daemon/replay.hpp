@@ -1,4 +1,4 @@
-// Deterministic replay of a magvecd LCM log (issue 6 item 4): the raw channels and the pipeline
+// Deterministic replay of a magvecd LCM log: the raw channels and the pipeline
 // events are read in log order (lcm::LogFile) and fed to the same EventPipeline the daemon used,
 // as fast as possible. The records go to `sink`; the live outputs recorded in the log (output
 // channel) can be written to `logged_sink` and are compared bit for bit with the replayed ones.

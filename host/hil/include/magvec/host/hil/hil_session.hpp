@@ -1,4 +1,4 @@
-// Host-in-the-loop harness (DESIGN.md "Host-in-the-loop simulation", issue 5 item 7):
+// Host-in-the-loop harness (docs/architecture.md#simulation):
 //   simulated devices (drivers/sim SimRig: ADS131M04 on SPI + DRDY or serial ASCII fluxgate, SBG
 //   INS on CAN) -> the REAL drivers (Ads131Fluxgate / SerialFluxgate / CanAttitudeSource, i.e.
 //   the byte codecs) -> core::SamplePipeline (AttitudeBuffer with the delayed fusion horizon, slerp

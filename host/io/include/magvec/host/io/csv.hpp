@@ -1,5 +1,5 @@
-// CSV recordings (DESIGN.md "File formats"): a streaming reader with columns by header name and a
-// writer that replaces its output atomically.
+// CSV recordings (docs/conventions.md#file-formats): a streaming reader with columns by header name
+// and a writer that replaces its output atomically.
 //
 // Reader rules
 // - The first line that is neither blank nor a `#` comment is the header; `#` comment lines and

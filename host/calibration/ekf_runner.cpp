@@ -2,6 +2,8 @@
 #include "calibration/ekf_runner.hpp"
 
 #include <Eigen/Eigenvalues>
+#include <Eigen/SVD>
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <memory>
@@ -12,12 +14,19 @@ namespace magvec::host {
 namespace {
 
 constexpr double kDeg = 180.0 / core::kPi<double>;
+// Start-up set capacity on the host: the set starts at init_samples (64, as on the MCU) and grows
+// up to this when noisy data leave the fit undetermined.
+constexpr int kStartupCapacity = 512;
 
 template <typename Scalar>
 core::EkfConfig<Scalar> make_config(const EkfRunOptions& opt) {
   core::EkfConfig<Scalar> c =
       opt.paper_settings ? core::EkfConfig<Scalar>::paper() : core::EkfConfig<Scalar>{};
-  if (!opt.paper_settings) c.noise_sigma_nT = static_cast<Scalar>(opt.noise_nT);
+  if (!opt.paper_settings) {
+    c.noise_sigma_nT = static_cast<Scalar>(opt.noise_nT ? *opt.noise_nT : opt.noise_guess_nT);
+    c.estimate_noise = !opt.noise_nT.has_value();
+    c.init_max_sigma = static_cast<Scalar>(opt.limits.max_relative_sigma);
+  }
   return c;
 }
 
@@ -54,7 +63,7 @@ bool li_of_state(const core::Vec<double, 12>& x, core::Vec<double, 9>* out) {
 template <typename Scalar>
 void run_filter(const std::string& path, const io::CsvReaderOptions& ropt, const EkfRunOptions& opt,
                 EkfRun* run) {
-  auto ekf = std::make_unique<core::ScalarEkf<Scalar>>(make_config<Scalar>(opt));
+  auto ekf = std::make_unique<core::ScalarEkf<Scalar, kStartupCapacity>>(make_config<Scalar>(opt));
   std::unique_ptr<io::CsvWriter> trace;
   if (!opt.trace_path.empty()) {
     trace = std::make_unique<io::CsvWriter>(
@@ -81,6 +90,7 @@ void run_filter(const std::string& path, const io::CsvReaderOptions& ropt, const
       const double f = rec.f_nT ? *rec.f_nT : (opt.field_nT ? *opt.field_nT : nan);
       const core::EkfStatus st =
           ekf->update(rec.m_nT.template cast<Scalar>(), static_cast<Scalar>(f));
+      if (st == core::EkfStatus::kReinitialised) run->last_reinit_row = rows;
       switch (st) {
         case core::EkfStatus::kAccepted:
         case core::EkfStatus::kInitialised:
@@ -116,6 +126,9 @@ void run_filter(const std::string& path, const io::CsvReaderOptions& ropt, const
       }
       ++update;
     }
+    // A recording shorter than the start-up set (or ending while it was being refilled): fit what
+    // was collected.
+    if (!ekf->initialised()) ekf->try_start();
     run->rows = rows;
     run->dropouts = dropouts;
     run->last_pass = last;
@@ -132,6 +145,16 @@ void run_filter(const std::string& path, const io::CsvReaderOptions& ropt, const
   run->last_reset = ekf_reset_name(ekf->last_reset_reason());
   run->initialised = ekf->initialised();
   run->field_scale_nT = static_cast<double>(ekf->field_scale_nT());
+  run->noise_nT = static_cast<double>(ekf->noise_nT());
+  run->noise_estimated = ekf->config().estimate_noise;
+  run->noise_estimate_nT = static_cast<double>(ekf->noise_estimate_nT());
+  run->noise_estimate_sigma_nT = static_cast<double>(ekf->noise_estimate_sigma_nT());
+  const core::EkfInitReport<Scalar>& ir = ekf->init_report();
+  run->init_report.failure = ir.failure;
+  run->init_report.undetermined = ir.undetermined;
+  run->init_report.relative_sigma = ir.relative_sigma.template cast<double>();
+  run->init_report.samples = ir.samples;
+  run->startup_samples = ekf->startup_samples();
   // Conditioning of the covariance in normalised units (b divided by the field scale).
   const double s = ekf->field_scale_nT() > 0 ? static_cast<double>(ekf->field_scale_nT()) : 1.0;
   core::Vec<double, 12> t = core::Vec<double, 12>::Ones();
@@ -146,6 +169,88 @@ std::string f2(double v, int decimals) {
   char buf[64];
   std::snprintf(buf, sizeof(buf), "%.*f", decimals, v);
   return buf;
+}
+
+// Median of positive values from a histogram in log10 (0.002 decades: 0.5 %), O(1) memory: only
+// the unit check uses it, and a factor of 10^3 is what it looks for.
+class LogMedian {
+ public:
+  void add(double v) {
+    if (!(v > 0) || !std::isfinite(v)) return;
+    const double b = (std::log10(v) - kLo) / kStep;
+    const auto k = static_cast<std::size_t>(std::clamp(b, 0.0, static_cast<double>(kBins - 1)));
+    ++bins_[k];
+    ++n_;
+  }
+  double median() const {
+    if (n_ == 0) return std::numeric_limits<double>::quiet_NaN();
+    std::uint64_t acc = 0;
+    for (std::size_t k = 0; k < kBins; ++k) {
+      acc += bins_[k];
+      if (2 * acc >= n_) return std::pow(10.0, kLo + (static_cast<double>(k) + 0.5) * kStep);
+    }
+    return std::numeric_limits<double>::quiet_NaN();
+  }
+
+ private:
+  static constexpr double kLo = -4, kStep = 0.002;
+  static constexpr std::size_t kBins = 7000;  // 1e-4 .. 1e10
+  std::vector<std::uint64_t> bins_ = std::vector<std::uint64_t>(kBins, 0);
+  std::uint64_t n_{0};
+};
+
+// Normalised intensity residuals r = (|y| - F) / (sigma |W^T y^|) of the final model: their RMS
+// within the filter's 5-sigma gate over their robust scale (1.4826 median |r|, from a histogram of
+// |r| at 0.005 resolution), the tail ratio of the acceptance policy.
+class TailRatio {
+ public:
+  void add(double r) {
+    if (!std::isfinite(r)) return;
+    const double a = std::abs(r);
+    ++n_;
+    if (a < kGate) {
+      sum2_ += r * r;
+      ++inside_;
+      ++bins_[static_cast<std::size_t>(a / kStep)];
+    }
+  }
+  double ratio() const {
+    if (inside_ < 2) return std::numeric_limits<double>::quiet_NaN();
+    std::uint64_t acc = 0;
+    double med = kGate;
+    for (std::size_t k = 0; k < bins_.size(); ++k) {
+      acc += bins_[k];
+      if (2 * acc >= n_) {
+        med = (static_cast<double>(k) + 0.5) * kStep;
+        break;
+      }
+    }
+    return std::sqrt(sum2_ / static_cast<double>(inside_)) / (1.4826 * med);
+  }
+
+ private:
+  static constexpr double kGate = 5, kStep = 0.005;
+  std::vector<std::uint64_t> bins_ = std::vector<std::uint64_t>(1000, 0);
+  std::uint64_t n_{0}, inside_{0};
+  double sum2_{0};
+};
+
+std::string g3(double v) {
+  char buf[64];
+  std::snprintf(buf, sizeof(buf), "%.3g", v);
+  return buf;
+}
+
+// "b_z (1-sigma 0.31 of F), Cinv_zz (0.12)" for the set bits.
+std::string undetermined_list(std::uint32_t bits, const core::Vec<double, 12>& rel) {
+  std::string s;
+  for (int k = 0; k < 12; ++k) {
+    if ((bits & (1U << static_cast<unsigned>(k))) == 0) continue;
+    if (!s.empty()) s += ", ";
+    s += ekf_state_name(k);
+    s += " (1-sigma " + g3(rel(k)) + (k >= 9 ? " of F)" : ")");
+  }
+  return s;
 }
 
 }  // namespace
@@ -190,10 +295,35 @@ const char* ekf_reset_name(core::EkfResetReason r) noexcept {
   return "unknown";
 }
 
+const char* ekf_init_failure_name(core::EkfInitFailure f) noexcept {
+  switch (f) {
+    case core::EkfInitFailure::kNone:
+      return "none";
+    case core::EkfInitFailure::kTooFewSamples:
+      return "too_few_samples";
+    case core::EkfInitFailure::kUndetermined:
+      return "undetermined";
+    case core::EkfInitFailure::kNotAnEllipsoid:
+      return "not_an_ellipsoid";
+    case core::EkfInitFailure::kNotConverged:
+      return "not_converged";
+  }
+  return "unknown";
+}
+
+const char* ekf_state_name(int k) noexcept {
+  static constexpr const char* kNames[12] = {"Cinv_xx", "Cinv_xy", "Cinv_xz", "Cinv_yx",
+                                             "Cinv_yy", "Cinv_yz", "Cinv_zx", "Cinv_zy",
+                                             "Cinv_zz", "b_x",     "b_y",     "b_z"};
+  return k >= 0 && k < 12 ? kNames[k] : "?";
+}
+
 EkfRun run_ekf(const std::string& path, const io::CsvReaderOptions& reader_options,
                const EkfRunOptions& opt) {
   if (opt.passes < 1) throw std::invalid_argument("--passes must be at least 1");
-  if (!(opt.noise_nT > 0)) throw std::invalid_argument("--noise-nT must be positive");
+  if (opt.noise_nT && !(*opt.noise_nT > 0))
+    throw std::invalid_argument("--noise-nT must be positive");
+  if (!(opt.noise_guess_nT > 0)) throw std::invalid_argument("the noise guess must be positive");
   EkfRun run;
   if (opt.float32) {
     run_filter<float>(path, reader_options, opt, &run);
@@ -228,9 +358,14 @@ EkfRun run_ekf(const std::string& path, const io::CsvReaderOptions& reader_optio
     }
   }
 
-  // Evaluation pass (intensity before/after, coverage); no E/N/U: W is known only up to a
-  // rotation.
+  // Evaluation pass: intensity before/after and coverage (no E/N/U: W is known only up to a
+  // rotation), medians of |m| and F for the unit check, normalised residuals for the tail ratio.
   Evaluator ev(run.model, false);
+  LogMedian med_m, med_f, med_e;
+  TailRatio tail;
+  std::uint64_t usable = 0;
+  const core::Mat3<double> w = run.model.w;
+  const bool model_finite = w.allFinite() && run.model.o.allFinite();
   {
     io::CsvReader reader(path, reader_options);
     io::CsvRecord rec;
@@ -239,58 +374,179 @@ EkfRun run_ekf(const std::string& path, const io::CsvReaderOptions& reader_optio
           rec.f_nT ? *rec.f_nT
                    : (opt.field_nT ? *opt.field_nT : std::numeric_limits<double>::quiet_NaN());
       ev.add(rec.m_nT, f, nullptr);
+      if (!rec.m_nT.allFinite() || !(std::isfinite(f) && f > 0)) continue;
+      ++usable;
+      med_m.add(rec.m_nT.norm());
+      med_f.add(f);
+      // The last state is kept when the filter restarts: its residuals still measure the noise.
+      if (model_finite && (run.initialised || run.counters.updates > 0)) {
+        const core::Vec3<double> y = w * (rec.m_nT - run.model.o);
+        const double ny = y.norm();
+        const double gain = ny > 0 ? (w.transpose() * y).norm() / ny : 0.0;
+        if (gain > 0) {
+          if (run.initialised) tail.add((ny - f) / (run.noise_nT * gain));
+          med_e.add(std::abs(ny - f) / gain);
+        }
+      }
     }
   }
   run.eval = ev.result();
+  // With a given noise the filter's own estimate leans on it (gating, an overconfident P): the
+  // data's figure is then the robust scale of the final residuals per axis (1.4826 MAD, 9 fitted
+  // parameters; its 1-sigma 1.167 / sqrt(n) relative).
+  if (!run.noise_estimated && std::isfinite(med_e.median()) && usable > 9) {
+    const double n = static_cast<double>(usable);
+    run.noise_estimate_nT = 1.4826 * med_e.median() * std::sqrt(n / (n - 9));
+    run.noise_estimate_sigma_nT = 1.167 * run.noise_estimate_nT / std::sqrt(n);
+  }
 
-  // Verdict.
-  const double noise = opt.noise_nT;
-  const std::uint64_t usable = run.rows - run.dropouts;
-  const double max_rms = 3.0 * noise + 1.0;
-  double max_rel_sigma = 0;
-  for (int i = 0; i < 9; ++i)
-    max_rel_sigma = std::fmax(max_rel_sigma, run.sigma(i));
-  const double b_sigma = run.sigma.tail<3>().maxCoeff();
-  const double b_rel_sigma = b_sigma / (run.field_scale_nT > 0 ? run.field_scale_nT : 1.0);
-  if (run.eval.n_intensity == 0) {
-    run.verdict = "field_mismatch";
-    run.reason = "no reference total field: the file has no usable F_nT and no --field-nT";
-  } else if (!run.initialised && usable < 64) {
-    run.verdict = "too_few_samples";
-    run.reason = std::to_string(usable) +
-                 " usable samples; the filter's initial fit needs 64 "
-                 "well-spread samples";
-  } else if (!run.initialised || run.counters.updates == 0) {
-    run.verdict = "not_converged";
-    run.reason = "the filter never started (" + std::to_string(run.counters.init_failures) +
-                 " failed initial fits: poor direction coverage or not an ellipsoid)";
-  } else if (!run.model.w.allFinite() || !run.model.o.allFinite() || !run.sigma.allFinite()) {
-    run.verdict = "ill_conditioned";
-    run.reason = "the state or its covariance is not finite";
-  } else if (li_status == core::ConversionStatus::kReflection) {
-    run.verdict = "reflected_solution";
-    run.reason =
-        "C^-1 ended with a negative determinant (a reflection, ERRATA 002-3): G may fit "
-        "but no rotation maps the compensated vector to the body frame";
-  } else if (!run.li_ok) {
-    run.verdict = "not_an_ellipsoid";
-    run.reason = "G = C^-T C^-1 is not positive definite";
-  } else if (run.eval.coverage < opt.min_coverage) {
-    run.verdict = "insufficient_coverage";
-    run.reason = "field directions cover " + f2(100.0 * run.eval.coverage, 1) +
-                 " % of the sphere, at least " + f2(100.0 * opt.min_coverage, 1) + " % needed";
-  } else if (max_rel_sigma > opt.max_relative_sigma || b_rel_sigma > opt.max_relative_sigma) {
-    run.verdict = "ill_conditioned";
-    run.reason = "a parameter 1-sigma is too large (C^-1 " + f2(max_rel_sigma, 5) + ", b " +
-                 f2(b_sigma, 1) + " nT): the data do not determine the calibration";
-  } else if (!(run.eval.intensity_rms_after_nT <= max_rms)) {
-    run.verdict = "residual_too_large";
-    run.reason = "calibrated intensity residual RMS " + f2(run.eval.intensity_rms_after_nT, 2) +
-                 " nT above 3x the stated noise + 1 nT (" + f2(max_rms, 2) +
-                 " nT): check --noise-nT or the data";
-  } else {
-    run.verdict = "ok";
-    run.reason = "all acceptance checks passed";
+  // Evidence for the one acceptance policy.
+  core::AcceptanceEvidence<double>& e = run.evidence;
+  core::AcceptanceLimits<double> limits = opt.limits;
+  const int min_fit = core::EkfConfig<double>{}.init_min_samples;
+  limits.min_samples = std::max<std::size_t>(limits.min_samples, static_cast<std::size_t>(min_fit));
+  e.rows = run.rows;
+  e.usable = usable;
+  e.median_norm_nT = med_m.median();
+  e.median_f_nT = med_f.median();
+  e.coverage = run.eval.coverage;
+  const double f_ref = std::isfinite(e.median_f_nT) ? e.median_f_nT : run.field_scale_nT;
+  core::Vec<double, 12> rel =
+      core::Vec<double, 12>::Constant(std::numeric_limits<double>::quiet_NaN());
+  std::uint32_t undetermined = 0;
+  if (run.initialised) {
+    for (int k = 0; k < 12; ++k) {
+      rel(k) = k < 9 ? run.sigma(k) : run.sigma(k) / f_ref;
+      if (!(rel(k) <= limits.max_relative_sigma)) undetermined |= 1U << static_cast<unsigned>(k);
+    }
+  } else if (run.init_report.failure == core::EkfInitFailure::kUndetermined) {
+    rel = run.init_report.relative_sigma;
+    undetermined = run.init_report.undetermined;
+  }
+  e.undetermined = undetermined;
+  e.not_an_ellipsoid =
+      !run.initialised && run.init_report.failure == core::EkfInitFailure::kNotAnEllipsoid;
+  const bool reflected = li_status == core::ConversionStatus::kReflection;
+  e.converged = run.initialised && model_finite && run.sigma.allFinite() && !reflected;
+  e.noise_given = opt.noise_nT.has_value() && !opt.paper_settings;
+  e.noise_nT = run.noise_nT;
+  if (e.noise_given && std::isfinite(run.noise_estimate_nT)) {
+    const double ratio = run.noise_estimate_nT / *opt.noise_nT;
+    e.chi2_per_dof = ratio * ratio;
+  }
+  if (!e.noise_given && run.initialised) e.tail_ratio = tail.ratio();
+  if (run.initialised && model_finite && std::abs(w.determinant()) > 0) {
+    const Eigen::JacobiSVD<core::Mat3<double>> svd(w);
+    // Scale factors of the sensor: singular values of C = W^-1.
+    e.min_scale = 1.0 / svd.singularValues()(0);
+    e.max_scale = 1.0 / svd.singularValues()(2);
+  }
+  run.verdict_code = core::judge(e, limits);
+  run.verdict = core::verdict_name(run.verdict_code);
+
+  // A given noise the data disagree with.
+  if (opt.noise_nT && std::isfinite(run.noise_estimate_nT) && run.noise_estimate_nT > 0) {
+    const double ratio = *opt.noise_nT / run.noise_estimate_nT;
+    if (ratio > 2 || ratio < 0.5) {
+      run.warnings.push_back("--noise-nT " + f2(*opt.noise_nT, 3) +
+                             " nT disagrees with the data's own estimate of the magnetometer "
+                             "noise (" +
+                             f2(run.noise_estimate_nT, 3) + " nT) by a factor of " +
+                             f2(ratio > 1 ? ratio : 1 / ratio, 1));
+    }
+  }
+
+  // The reason, naming the cause with the figures behind it.
+  const core::EkfCounters& k = run.counters;
+  const std::string tries = std::to_string(k.init_attempts) + " initial fit" +
+                            (k.init_attempts == 1 ? "" : "s") + " tried";
+  auto never_started = [&]() {
+    return "the filter never started (" + tries + " on a start-up set of " +
+           std::to_string(run.init_report.samples) + " best-spread of " + std::to_string(usable) +
+           " usable samples; the last failed: " + ekf_init_failure_name(run.init_report.failure) +
+           ")";
+  };
+  switch (run.verdict_code) {
+    case core::Verdict::kOk:
+      run.reason = "all acceptance checks passed";
+      break;
+    case core::Verdict::kNoData:
+      run.reason = "no data rows: the file has a header but no samples";
+      break;
+    case core::Verdict::kUnitMismatch: {
+      const double ratio = e.median_norm_nT / e.median_f_nT;
+      run.reason = ratio < 1 ? "values look like uT under an nT header (median |m| " +
+                                   f2(e.median_norm_nT, 3) + " vs F " + f2(e.median_f_nT, 1) + ")"
+                             : "the reference F looks like uT under an nT header (median |m| " +
+                                   f2(e.median_norm_nT, 1) + " vs F " + f2(e.median_f_nT, 3) + ")";
+      break;
+    }
+    case core::Verdict::kTooFewSamples:
+      run.reason = std::to_string(usable) +
+                   " usable samples (a finite reading and a positive F), " + "at least " +
+                   std::to_string(limits.min_samples) + " needed for the filter's initial fit";
+      break;
+    case core::Verdict::kInsufficientCoverage: {
+      const bool narrow = e.coverage < limits.min_coverage;
+      std::string s = "field directions cover " + f2(100.0 * e.coverage, 1) + " % of the sphere" +
+                      (narrow ? " (at least " + f2(100.0 * limits.min_coverage, 1) + " % needed)"
+                              : std::string());
+      if (undetermined != 0) {
+        s += std::string(narrow ? "; " : ", but ") + "the data do not determine " +
+             undetermined_list(undetermined, rel) + " (limit " + g3(limits.max_relative_sigma) +
+             ")";
+      }
+      if (!run.initialised) s += "; " + never_started();
+      run.reason = s + "; rotate through more headings and tilts";
+      break;
+    }
+    case core::Verdict::kNotAnEllipsoid:
+      run.reason = never_started() +
+                   ": the start-up set determines every parameter but the readings do not lie "
+                   "on a distorted sphere (the field changed, or these are not magnetometer "
+                   "readings)";
+      break;
+    case core::Verdict::kNotConverged:
+      if (reflected) {
+        run.reason =
+            "C^-1 ended with a negative determinant (a reflection, ERRATA 002-3): G may fit but "
+            "no rotation maps the compensated vector to the body frame";
+      } else if (!run.initialised && k.updates > 0) {
+        run.reason = "the filter made " + std::to_string(k.updates) + " updates, then restarted (" +
+                     run.last_reset + ", " + std::to_string(k.reinitialisations) +
+                     " restarts in all, the last at row " + std::to_string(run.last_reinit_row) +
+                     ") and had not started again by the end of the data (start-up set " +
+                     std::to_string(run.startup_samples) + " samples, " + tries + ")";
+      } else if (!run.initialised) {
+        run.reason = never_started();
+      } else {
+        run.reason = "the state or its covariance is not finite";
+      }
+      break;
+    case core::Verdict::kResidualTooLarge:
+      if (e.noise_given && std::isfinite(e.chi2_per_dof) &&
+          e.chi2_per_dof > limits.max_chi2_per_dof) {
+        run.reason = "the data's noise (" + f2(run.noise_estimate_nT, 2) + " nT) is " +
+                     f2(std::sqrt(e.chi2_per_dof), 1) + "x the given --noise-nT " +
+                     f2(*opt.noise_nT, 2) + " nT: check it, or leave it out to estimate it";
+      } else if (!(e.noise_nT <= limits.max_noise_fraction * e.median_norm_nT)) {
+        run.reason = "the magnetometer noise (" + f2(e.noise_nT, 1) + " nT) exceeds " +
+                     f2(100 * limits.max_noise_fraction, 0) +
+                     " % of the field: nothing left to calibrate";
+      } else {
+        run.reason = "residuals have heavy tails (RMS " + f2(e.tail_ratio, 2) +
+                     "x their robust scale, limit " + f2(limits.max_tail_ratio, 1) +
+                     "): part of the data does not fit the sensor model";
+      }
+      break;
+    case core::Verdict::kFieldMismatch:
+      run.reason = "scale factors " + f2(e.min_scale, 4) + ".." + f2(e.max_scale, 4) +
+                   " outside [" + f2(limits.min_scale, 2) + ", " + f2(limits.max_scale, 2) +
+                   "]: the reference field does not match the readings (wrong F, or a wrong unit)";
+      break;
+    default:
+      run.reason = "see the verdict";
+      break;
   }
 
   CalibrationFile& c = run.cal;
@@ -308,6 +564,12 @@ EkfRun run_ekf(const std::string& path, const io::CsvReaderOptions& reader_optio
                         run.li_sigma.o_rad(2) * kDeg};
     c.sigma["Kof_nT"] = {run.li_sigma.kof(0), run.li_sigma.kof(1), run.li_sigma.kof(2)};
   }
+  c.noise.mag_nT = run.noise_nT;
+  c.noise.mag_estimated = run.noise_estimated;
+  if (run.noise_estimated) {
+    c.noise.mag_nT = run.noise_estimate_nT;
+    c.noise.mag_sigma_nT = run.noise_estimate_sigma_nT;
+  }
   c.quality.verdict = run.verdict;
   c.quality.reason = run.reason;
   c.quality.coverage = run.eval.coverage;
@@ -315,10 +577,17 @@ EkfRun run_ekf(const std::string& path, const io::CsvReaderOptions& reader_optio
   c.quality.residual_rms_before_nT = run.eval.intensity_rms_before_nT;
   c.quality.residual_rms_after_nT = run.eval.intensity_rms_after_nT;
   c.quality.extra["passes"] = opt.passes;
-  c.quality.extra["updates"] = run.counters.updates;
-  c.quality.extra["gated"] = run.counters.gated;
-  c.quality.extra["reinitialisations"] = run.counters.reinitialisations;
-  c.quality.extra["init_outliers"] = run.counters.init_outliers;
+  c.quality.extra["updates"] = k.updates;
+  c.quality.extra["gated"] = k.gated;
+  c.quality.extra["reinitialisations"] = k.reinitialisations;
+  c.quality.extra["init_outliers"] = k.init_outliers;
+  c.quality.extra["init_attempts"] = k.init_attempts;
+  c.quality.extra["init_exchanges"] = k.init_exchanges;
+  if (std::isfinite(e.tail_ratio)) c.quality.extra["tail_ratio"] = e.tail_ratio;
+  if (!run.noise_estimated && std::isfinite(run.noise_estimate_nT)) {
+    c.quality.extra["mag_noise_data_nT"] = run.noise_estimate_nT;
+    c.quality.extra["mag_noise_data_sigma_nT"] = run.noise_estimate_sigma_nT;
+  }
   c.quality.extra["float32"] = opt.float32 ? 1.0 : 0.0;
   c.counts.samples = run.rows;
   // Counts of the last pass (the samples behind the final state); cumulative counters in extra.

@@ -21,7 +21,8 @@
 // enters if it adds information, and replaces the member whose exchange raises the determinant of
 // the set's information most). The fit is tried when the set is full, then again whenever its
 // information has grown by init_retry_gain per dimension; a failed try keeps the set and records
-// why (init_report(): which parameters the set does not determine, or not an ellipsoid).
+// why (init_report(): which parameters the set does not determine, or not an ellipsoid). After an
+// undetermined try the set may grow, doubling up to kInitCapacity (noisy data need more samples).
 // Noise from the data: the magnetometer noise is estimated from the start-up fit's residuals
 // (robust scale) and then from the innovations (winsorised, with the parameter part of the
 // innovation variance removed), per window of nis_window samples, discarding windows that ended in
@@ -65,7 +66,7 @@ constexpr int ekf_w_index(int r, int c) noexcept {
 static_assert(ekf_w_index(2, 2) == kEkfW22 && kEkfBx == 9 && kEkfBz + 1 == kEkfStateDim);
 
 enum class EkfInitMode : std::uint8_t {
-  kQuadricFit,  // default: fit the first init_samples samples, then filter (one-pass)
+  kQuadricFit,  // default: fit a well-spread start-up set, then filter (one-pass)
   kGiven,       // start from w0/b0_nT/p0 as configured (paper, or "identity + mean" start)
 };
 
@@ -328,6 +329,7 @@ class ScalarEkf {
   void restart() noexcept {
     initialised_ = false;
     n_buf_ = 0;
+    target_ = cfg_.init_samples;
     feat_info_.setZero();
     feat_dirty_ = true;
     lev_dirty_ = true;
@@ -794,12 +796,20 @@ class ScalarEkf {
     const Scalar ridge = Scalar(1e-4);
     FeatureMat a = feat_info_;
     a.diagonal().array() += ridge;
-    feat_ldlt_.compute(a);
+    // The inverse is kept rather than the factorisation: an Eigen::LDLT member would give the
+    // filter a non-trivial destructor (a static instance then needs __dso_handle on bare metal).
+    const Eigen::LDLT<FeatureMat> ldlt(a);
     Scalar logdet{0};
-    const auto dvec = feat_ldlt_.vectorD();
+    const auto dvec = ldlt.vectorD();
     for (int i = 0; i < 9; ++i)
       logdet += std::log(std::max(dvec(i), ridge));
     feat_logdet_ = logdet;
+    for (int c = 0; c < 9; ++c) {  // column by column: no level-3 solver (heap fallback)
+      Features e = Features::Zero();
+      e(c) = 1;
+      const Features col = ldlt.solve(e);
+      feat_inv_.col(c) = col;
+    }
     feat_dirty_ = false;
     lev_dirty_ = true;
   }
@@ -808,7 +818,7 @@ class ScalarEkf {
     if (!lev_dirty_) return;
     for (int j = 0; j < n_buf_; ++j) {
       const Features f = buffered_features(j);
-      const Features g = feat_ldlt_.solve(f);
+      const Features g = feat_inv_ * f;
       lev_(j) = f.dot(g);
     }
     lev_dirty_ = false;
@@ -823,13 +833,12 @@ class ScalarEkf {
     if (!(norm > 0)) return EkfStatus::kCollecting;
     const Features f = features(m / norm);
     refactor_features();
-    const Features g = feat_ldlt_.solve(f);
+    const Features g = feat_inv_ * f;
     const Scalar dx = f.dot(g);  // leverage: det grows by (1 + dx) if the sample is added
-    if (n_buf_ < cfg_.init_samples) {
+    if (n_buf_ < target_) {
       // An average member of a set of n in 9 dimensions has leverage 9 / n: take samples that add
       // at least half that, so a still platform does not fill the set with copies.
-      if (!(dx > Scalar(4.5) / static_cast<Scalar>(cfg_.init_samples)))
-        return EkfStatus::kCollecting;
+      if (!(dx > Scalar(4.5) / static_cast<Scalar>(target_))) return EkfStatus::kCollecting;
       store(n_buf_, m, fn);
       ++n_buf_;
       feat_info_.template selfadjointView<Eigen::Lower>().rankUpdate(f);
@@ -879,6 +888,9 @@ class ScalarEkf {
       return true;
     }
     ++counters_.init_failures;
+    // Undetermined: more samples (up to the capacity) may determine it; noise shrinks as 1/sqrt(n).
+    if (report_.failure == EkfInitFailure::kUndetermined && target_ < kInitCapacity)
+      target_ = std::min(2 * target_, kInitCapacity);
     return false;
   }
 
@@ -1169,8 +1181,9 @@ class ScalarEkf {
   Vec<Scalar, kInitCapacity> used_ = Vec<Scalar, kInitCapacity>::Zero();
   Vec<Scalar, kInitCapacity> lev_ = Vec<Scalar, kInitCapacity>::Zero();
   int n_buf_ = 0;
+  int target_ = 0;  // size the set grows to (init_samples, doubled after undetermined tries)
   FeatureMat feat_info_ = FeatureMat::Zero();
-  Eigen::LDLT<FeatureMat> feat_ldlt_{};
+  FeatureMat feat_inv_ = FeatureMat::Identity();  // (info + ridge I)^-1
   Scalar feat_logdet_{0};
   Scalar logdet_at_try_{0};
   bool feat_dirty_ = true;

@@ -154,6 +154,7 @@ void run_filter(const std::string& path, const io::CsvReaderOptions& ropt, const
   run->init_report.undetermined = ir.undetermined;
   run->init_report.relative_sigma = ir.relative_sigma.template cast<double>();
   run->init_report.samples = ir.samples;
+  run->init_report.limit = static_cast<double>(ir.limit);
   run->startup_samples = ekf->startup_samples();
   // Conditioning of the covariance in normalised units (b divided by the field scale).
   const double s = ekf->field_scale_nT() > 0 ? static_cast<double>(ekf->field_scale_nT()) : 1.0;
@@ -422,6 +423,7 @@ EkfRun run_ekf(const std::string& path, const io::CsvReaderOptions& reader_optio
   } else if (run.init_report.failure == core::EkfInitFailure::kUndetermined) {
     rel = run.init_report.relative_sigma;
     undetermined = run.init_report.undetermined;
+    if (std::isfinite(run.init_report.limit)) limits.max_relative_sigma = run.init_report.limit;
   }
   e.undetermined = undetermined;
   e.not_an_ellipsoid =
@@ -509,7 +511,8 @@ EkfRun run_ekf(const std::string& path, const io::CsvReaderOptions& reader_optio
     case core::Verdict::kNotConverged:
       if (reflected) {
         run.reason =
-            "C^-1 ended with a negative determinant (a reflection, ERRATA 002-3): G may fit but "
+            "C^-1 ended with a negative determinant (a reflection, docs/equations.md E-Ge-3): G "
+            "may fit but "
             "no rotation maps the compensated vector to the body frame";
       } else if (!run.initialised && k.updates > 0) {
         run.reason = "the filter made " + std::to_string(k.updates) + " updates, then restarted (" +

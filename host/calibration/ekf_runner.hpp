@@ -1,13 +1,13 @@
-// Runs the online scalar EKF of Ge et al. 2017 (core::ScalarEkf, ERRATA 002) over a CSV recording,
-// optionally several passes through the same filter and with a per-sample trace, and fills a
-// CalibrationFile. The EKF observes |H| only, so it determines G = W^T W and b but W only up to a
-// rotation (ERRATA 002-2): the cal.json holds W = C^-1, o = b, Rm = identity; its li block is the
-// Li-structured form of that W (canonicalize_li), whose Rm_deg is that unobservable rotation, not
-// a misalignment to the INS.
-// Without a given noise the filter estimates the magnetometer noise from the data (start-up fit
-// residuals, then innovations) and uses it for weighting, debias and gating; a given noise that
-// disagrees with the data's estimate by more than 2x gets a warning. The verdict is core::judge()
-// (acceptance.hpp) over evidence gathered from the filter and an evaluation pass.
+// Runs the online scalar EKF of Ge et al. 2017 (core::ScalarEkf, docs/equations.md E-Ge) over a CSV
+// recording, optionally several passes through the same filter and with a per-sample trace, and
+// fills a CalibrationFile. The EKF observes |H| only, so it determines G = W^T W and b but W only
+// up to a rotation (docs/equations.md E-Ge-2): the cal.json holds W = C^-1, o = b, Rm = identity;
+// its li block is the Li-structured form of that W (canonicalize_li), whose Rm_deg is that
+// unobservable rotation, not a misalignment to the INS. Without a given noise the filter estimates
+// the magnetometer noise from the data (start-up fit residuals, then innovations) and uses it for
+// weighting, debias and gating; a given noise that disagrees with the data's estimate by more than
+// 2x gets a warning. The verdict is core::judge() (acceptance.hpp) over evidence gathered from the
+// filter and an evaluation pass.
 #pragma once
 
 #include <cstdint>

@@ -835,7 +835,8 @@ TEST(ScalarEkf, NarrowCapNamesTheUndeterminedParameters) {
     // Offsets are among the undetermined states, and their bits agree with the sigmas.
     EXPECT_NE(r.undetermined & (7U << kEkfBx), 0u) << std::hex << r.undetermined;
     for (int k = 0; k < kEkfStateDim; ++k)
-      EXPECT_EQ((r.undetermined >> k) & 1U, r.relative_sigma(k) > cfg.init_max_sigma ? 1U : 0U);
+      EXPECT_EQ((r.undetermined >> k) & 1U, r.relative_sigma(k) > r.limit ? 1U : 0U);
+    EXPECT_LE(r.limit, cfg.init_max_sigma);
   }
 }
 

@@ -286,7 +286,7 @@ CalibrationFile run_sine_method(const CalibrateOptions& o) {
   } catch (const std::invalid_argument& e) {
     throw CommandExit(2, e.what());
   }
-  std::cout << "magvec calibrate: method sine: turntable sine fitting (seed 001, ERRATA 001), "
+  std::cout << "magvec calibrate: method sine: turntable sine fitting (docs/equations.md E-Sine), "
                "fixture "
             << o.fixture << "\n"
             << "  input XY sweep " << o.in_path << " (" << run.rows_xy << " rows), XZ sweep "
@@ -328,13 +328,14 @@ CalibrationFile run_ekf_method(const CalibrateOptions& o) {
   if (std::isfinite(o.field_nT)) eo.field_nT = o.field_nT;
   eo.trace_path = o.trace;
   const EkfRun run = run_ekf(o.in_path, ropt, eo);
-  std::cout << "magvec calibrate: method ekf: 12-state scalar EKF (Ge 2017, ERRATA 002), "
-            << (o.float32 ? "float32" : "float64") << ", "
-            << (o.paper_settings
-                    ? "paper settings (printed x0/P0/Q/R; known to fail, ERRATA 002-3)"
-                    : "default settings (start from a fit of a well-spread start-up set)")
-            << ", " << o.passes << (o.passes == 1 ? " pass" : " passes") << "\n"
-            << "  input " << o.in_path << "; magnetometer noise ";
+  std::cout
+      << "magvec calibrate: method ekf: 12-state scalar EKF (Ge 2017, docs/equations.md E-Ge), "
+      << (o.float32 ? "float32" : "float64") << ", "
+      << (o.paper_settings
+              ? "paper settings (printed x0/P0/Q/R; known to fail, docs/equations.md E-Ge-3)"
+              : "default settings (start from a fit of a well-spread start-up set)")
+      << ", " << o.passes << (o.passes == 1 ? " pass" : " passes") << "\n"
+      << "  input " << o.in_path << "; magnetometer noise ";
   if (run.noise_estimated) {
     std::cout << pm(run.noise_estimate_nT, run.noise_estimate_sigma_nT, 2)
               << " nT/axis (estimated from the data)\n";
@@ -370,7 +371,8 @@ CalibrationFile run_ekf_method(const CalibrateOptions& o) {
         << "]\n    b nT           " << pm3(run.model.o, run.sigma.tail<3>(), 2) << "\n"
         << "    G = C^-T C^-1  " << mat3(run.model.g(), 6) << "\n"
         << "  note: a scalar (|H|) observation determines G and b only; C^-1 is known up to a "
-           "rotation (ERRATA 002-2): cal.json holds W = C^-1, Rm = identity, and its li "
+           "rotation (docs/equations.md E-Ge-2): cal.json holds W = C^-1, Rm = identity, and its "
+           "li "
            "block's Rm_deg is that rotation, not a misalignment\n";
     if (run.li_ok) print_li(run.li, &run.li_sigma, false);
   }
@@ -384,7 +386,8 @@ void run(const CalibrateOptions& o) {
   if (o.method == "sine" && o.sweep_xz.empty())
     throw CommandExit(2, "--method sine needs --sweep-xz (the XZ sweep; --in is the XY sweep)");
   if (o.method == "sine" && o.fixture.empty())
-    throw CommandExit(2, "--method sine needs --fixture plane-normal|housing-y (ERRATA 001-4)");
+    throw CommandExit(
+        2, "--method sine needs --fixture plane-normal|housing-y (docs/equations.md E-Sine-4)");
   if (o.method != "sine" && (!o.sweep_xz.empty() || !o.fixture.empty()))
     throw CommandExit(2, "--sweep-xz and --fixture apply only to --method sine");
   if (o.method != "ekf" && (o.paper_settings || o.float32 || o.passes != 1 || !o.trace.empty()))

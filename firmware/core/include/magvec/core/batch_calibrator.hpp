@@ -449,24 +449,32 @@ class BatchCalibrator {
     res->evidence.noise_nT = res->noise.mag_nT;
   }
 
+  // Calls f(sample, e) with e = R^T Rm^T W (m - o) - F d, the geographic residual of every
+  // sample with attitude in use, under a result's model and h_n direction d.
+  template <typename F>
+  void for_geographic_residuals(const BatchResult<Scalar>& res, F&& f) const noexcept {
+    const Mat3<Scalar> rmt = res.model.rm_matrix().transpose();
+    const Vec3<Scalar> dir = res.h_n_nT.normalized();
+    for (std::size_t i = 0; i < store_.size(); ++i) {
+      const StoredSample<Scalar>& s = store_[i];
+      if (!detail::usable(s)) continue;
+      f(s, Vec3<Scalar>(s.r_bn().transpose() * (rmt * (res.model.w * (s.raw() - res.model.o))) -
+                        s.f * dir));
+    }
+  }
+
   // Attitude noise of a two-step result from the residual across h_n: E|r_perp|^2 = 2 sm^2 +
   // 2 sa^2 F^2 (isotropic attitude noise, two directions across the field).
   void attitude_noise(BatchResult<Scalar>* res) const noexcept {
     if (!res->has_h_n) return;
-    const Mat3<Scalar> rmt = res->model.rm_matrix().transpose();
     const Vec3<Scalar> dir = res->h_n_nT.normalized();
     Scalar ss{0}, f2{0};
     std::size_t n = 0;
-    for (std::size_t i = 0; i < store_.size(); ++i) {
-      const StoredSample<Scalar>& s = store_[i];
-      if (!detail::usable(s)) continue;
-      const Vec3<Scalar> e =
-          s.r_bn().transpose() * (rmt * (res->model.w * (s.raw() - res->model.o))) - s.f * dir;
-      const Vec3<Scalar> perp = e - dir * dir.dot(e);
-      ss += perp.squaredNorm();
+    for_geographic_residuals(*res, [&](const StoredSample<Scalar>& s, const Vec3<Scalar>& e) {
+      ss += (e - dir * dir.dot(e)).squaredNorm();
       f2 += s.f * s.f;
       ++n;
-    }
+    });
     if (n == 0) return;
     const Scalar nn = static_cast<Scalar>(n);
     const Scalar sm2 = res->noise.mag_nT * res->noise.mag_nT;
@@ -572,18 +580,12 @@ class BatchCalibrator {
     }
     res->quality.intensity_rms_nT = intensity_rms(res->model.w, res->model.o, need_att);
     if (res->has_h_n) {
-      const Mat3<Scalar> rmt = res->model.rm_matrix().transpose();
-      const Vec3<Scalar> dir = res->h_n_nT.normalized();
       Vec3<Scalar> sse = Vec3<Scalar>::Zero();
       std::size_t n = 0;
-      for (std::size_t i = 0; i < store_.size(); ++i) {
-        const StoredSample<Scalar>& s = store_[i];
-        if (!detail::usable(s)) continue;
-        const Vec3<Scalar> e =
-            s.r_bn().transpose() * (rmt * (res->model.w * (s.raw() - res->model.o))) - s.f * dir;
+      for_geographic_residuals(*res, [&](const StoredSample<Scalar>&, const Vec3<Scalar>& e) {
         sse += e.cwiseProduct(e);
         ++n;
-      }
+      });
       res->quality.enu_rms_nT = (sse / static_cast<Scalar>(n > 0 ? n : 1)).cwiseSqrt();
     }
     ev.min_scale = res->li.ks.minCoeff();

@@ -535,31 +535,26 @@ class OneStepFit {
     if (g != nullptr) (*g)(k) = Scalar(0);
   }
 
-  static VecP vector_of(const Params& p) noexcept {
+  // The Li parameters as a parameter vector (the direction of h_n left at 0).
+  static VecP pack(const Vec3<Scalar>& ks, const Vec3<Scalar>& o_rad, const Vec3<Scalar>& u,
+                   const Vec3<Scalar>& rm) noexcept {
     VecP v = VecP::Zero();
-    v.template segment<3>(kIdxKs) = p.ks;
-    v.template segment<3>(kIdxO) = p.o_rad;
-    v.template segment<3>(kIdxKof) = p.u;
-    v.template segment<3>(kIdxRm) = p.rm;
+    v.template segment<3>(kIdxKs) = ks;
+    v.template segment<3>(kIdxO) = o_rad;
+    v.template segment<3>(kIdxKof) = u;
+    v.template segment<3>(kIdxRm) = rm;
     return v;
   }
+  static VecP vector_of(const Params& p) noexcept { return pack(p.ks, p.o_rad, p.u, p.rm); }
   static VecP prior_means(const OneStepPrior<Scalar>& pr,
                           const Normalization<Scalar>& norm) noexcept {
-    VecP v = VecP::Zero();
-    v.template segment<3>(kIdxKs) = pr.mean.ks;
-    v.template segment<3>(kIdxO) = pr.mean.o_rad;
-    v.template segment<3>(kIdxKof) = norm.to_unit(pr.mean.kof);
-    v.template segment<3>(kIdxRm) = pr.mean.rm_rad;
-    return v;
+    return pack(pr.mean.ks, pr.mean.o_rad, norm.to_unit(pr.mean.kof), pr.mean.rm_rad);
   }
   // Prior 1-sigmas in the fit's units; 0 where there is none (the direction of h_n never has one).
   static VecP prior_sigmas(const OneStepPrior<Scalar>& pr,
                            const Normalization<Scalar>& norm) noexcept {
-    VecP v = VecP::Zero();
-    v.template segment<3>(kIdxKs) = pr.sigma.ks;
-    v.template segment<3>(kIdxO) = pr.sigma.o_rad;
-    v.template segment<3>(kIdxKof) = pr.sigma.kof / norm.scale;
-    v.template segment<3>(kIdxRm) = pr.sigma.rm_rad;
+    VecP v =
+        pack(pr.sigma.ks, pr.sigma.o_rad, Vec3<Scalar>(pr.sigma.kof / norm.scale), pr.sigma.rm_rad);
     for (int k = 0; k < kParams; ++k)
       if (!(std::isfinite(v(k)) && v(k) > Scalar(0))) v(k) = Scalar(0);
     return v;

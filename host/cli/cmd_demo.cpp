@@ -10,6 +10,7 @@
 // records and attitudes (what a perfect calibration would give: the noise).
 #include <CLI/CLI.hpp>
 #include <cmath>
+#include <deque>
 #include <filesystem>
 #include <iostream>
 #include <memory>
@@ -48,10 +49,25 @@ class ScoringSink final : public hal::RecordSink {
       : csv_(csv), truth_(sc.truth), survey_(sc.survey) {}
   void attach(Session* s) { session_ = s; }
 
+  // The truth of every simulated sample, kept until its record is emitted: the pipeline emits a
+  // record only when the fusion horizon lets it, after later samples were simulated.
+  void remember(const drivers::sim::SimSample& s) {
+    pending_.push_back({session_->rig().host_us(s.t_s), s});
+  }
+
   hal::Status emit(const hal::OutputRecord& r) noexcept override {
     const hal::Status st = csv_.emit(r);
-    const drivers::sim::SimSample& s = session_->rig().last();
-    if (r.cal_id == 0 || session_->rig().host_us(s.t_s) != r.t_us || !on_line(s.t_s) ||
+    while (!pending_.empty() && pending_.front().t_us < r.t_us)
+      pending_.pop_front();
+    drivers::sim::SimSample s;
+    if (!pending_.empty() && pending_.front().t_us == r.t_us) {
+      s = pending_.front().sample;
+    } else if (session_->rig().host_us(session_->rig().last().t_s) == r.t_us) {
+      s = session_->rig().last();  // emitted within the step that simulated it
+    } else {
+      return st;
+    }
+    if (r.cal_id == 0 || !on_line(s.t_s) ||
         (r.flags & (core::kOutDropout | core::kOutDeviceError | core::kOutNoAttitude)) != 0) {
       return st;
     }
@@ -89,6 +105,11 @@ class ScoringSink final : public hal::RecordSink {
     return std::fmod(tau, survey_.line_s + survey_.turn_s) < survey_.line_s;
   }
 
+  struct Pending {
+    std::uint64_t t_us;
+    drivers::sim::SimSample sample;
+  };
+  std::deque<Pending> pending_;
   hil::CsvRecordSink& csv_;
   core::Compensator<double> truth_;
   drivers::sim::SurveyConfig survey_;
@@ -165,6 +186,7 @@ void run(const DemoOptions& o) {
     throw std::runtime_error(std::string("device initialisation failed: ") + hal::to_string(s));
   std::uint64_t applied_at = 0;
   while (session->step()) {
+    sink.remember(session->rig().last());
     if (applied_at == 0 && session->loop().cal_id() > 0) applied_at = session->counters().steps;
   }
   if (session->counters().sink_errors != 0)

@@ -175,10 +175,11 @@ class BatchCalibrator {
     if (need_att) ev.tilt_spread_deg = res.quality.tilt_spread_deg;
     ev.coverage = raw_coverage(need_att);
     res.quality.coverage = ev.coverage;
-    if (n_avail < EllipsoidFit<Scalar>::kMinSamples) ev.usable = std::min(ev.usable, n_avail);
-    if (n_avail < EllipsoidFit<Scalar>::kMinSamples || judge(ev, cfg_.limits) != Verdict::kOk) {
-      res.verdict = judge(ev, cfg_.limits);
-      if (res.verdict == Verdict::kOk) res.verdict = Verdict::kTooFewSamples;
+    Verdict early = judge(ev, cfg_.limits);
+    if (early == Verdict::kOk && n_avail < EllipsoidFit<Scalar>::kMinSamples)
+      early = Verdict::kTooFewSamples;  // below what the ellipsoid fit needs, whatever the limits
+    if (early != Verdict::kOk) {
+      res.verdict = early;
       return res;
     }
     const Normalization<Scalar> norm = normalization();

@@ -1,10 +1,10 @@
-// The ParamStore record (the persisted calibration on the MCU's flash; the same record format in
-// the Linux FileParamStore). Input: a flash image of two 256-byte slots (sector 64 bytes), then a
-// blob to store. Invariants: load() returns a record only if the slot's bytes pass the record
-// check (magic, version, length, CRC) independently of the store, and it is the newest valid one;
-// it reports kNotFound only if neither slot passes; store() of any blob that fits succeeds, the
-// next load() returns exactly that blob with the next sequence number, and the slot that held the
-// newest record before the store is byte-identical afterwards (the last good calibration).
+// The ParamStore record (the persisted calibration on the MCU's flash). Input: a flash image of
+// two 256-byte slots (sector 64 bytes), then a blob to store. Invariants: load() returns a record
+// only if the slot's bytes pass the record check (magic, version, length, CRC) independently of the
+// store, and it is the newest valid one; it reports kNotFound only if neither slot passes; store()
+// of any blob that fits succeeds, the next load() returns exactly that blob with the next sequence
+// number, and the slot that held the newest record before the store is byte-identical afterwards
+// (the last good calibration).
 #include <array>
 #include <cstring>
 #include <vector>

@@ -1,4 +1,4 @@
-// The ParamStore record (shared by FlashParamStore and the Linux FileParamStore), little endian:
+// The ParamStore record of FlashParamStore (the MCU's persisted calibration), little endian:
 //   off 0  u32 magic 'MVPS' (0x5350564D)
 //   off 4  u16 version (1)
 //   off 6  u16 header size (20)

@@ -154,6 +154,109 @@ TEST(SensorLoop, ReportsSolverRefusalWithItsCode) {
   EXPECT_EQ(loop.solver_code(), 7);
 }
 
+// External solve (magvecd's worker thread): the loop waits in kSolving without touching the
+// calibrator, and the result gives exactly the records of the inline path when it is installed at
+// the same point (after the sample following ready, the one the inline loop solves on).
+TEST(SensorLoop, ExternalSolveInstalledAtTheInlinePointGivesTheSameRecords) {
+  FakeCalibrator cal_inline;
+  FakeCalibrator cal_external;
+  cal_inline.result = cal_external.result = truth_model();
+  LoopConfig<double> cfg;
+  cfg.noise_nT = 0.3;
+  SensorLoop<double, FakeCalibrator> inline_loop(cal_inline, cfg);
+  cfg.external_solve = true;
+  SensorLoop<double, FakeCalibrator> external_loop(cal_external, cfg);
+  inline_loop.start_calibration();
+  external_loop.start_calibration();
+  Feed feed_a;
+  Feed feed_b;
+  Mat3<double> ra;
+  Mat3<double> rb;
+  int installs = 0;
+  for (int i = 0; i < 400; ++i) {
+    const MagSample<double> sa = feed_a.next(truth_model(), &ra);
+    const MagSample<double> sb = feed_b.next(truth_model(), &rb);
+    const std::uint32_t seen_before = cal_external.seen;
+    const OutputRecord<double> a = inline_loop.process(sa, &ra);
+    const OutputRecord<double> b = external_loop.process(sb, &rb);
+    ASSERT_EQ(a.flags, b.flags) << i;
+    ASSERT_EQ(a.cal_id, b.cal_id) << i;
+    ASSERT_EQ(a.intensity_nT, b.intensity_nT) << i;
+    // The inline loop solved on this sample; the external one only waited.
+    if (external_loop.state() == CalState::kSolving && inline_loop.state() != CalState::kSolving) {
+      EXPECT_EQ(cal_external.seen, seen_before);  // frozen while solving
+      SensorModel<double> model;
+      const CalibratorSolve r = cal_external.solve(&model);
+      EXPECT_TRUE(external_loop.install_solve(external_loop.solve_ticket(), r, model));
+      ++installs;
+    }
+  }
+  EXPECT_EQ(installs, 1);
+  EXPECT_EQ(external_loop.state(), CalState::kApplied);
+  EXPECT_EQ(inline_loop.state(), CalState::kApplied);
+}
+
+TEST(SensorLoop, ExternalSolveWaitsAndCompensatesWithTheActiveModel) {
+  FakeCalibrator cal;
+  cal.result = truth_model();
+  LoopConfig<double> cfg;
+  cfg.noise_nT = 0.3;
+  cfg.external_solve = true;
+  SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+  Feed feed;
+  Mat3<double> r;
+  EXPECT_EQ(loop.solve_ticket(), 0u);
+  loop.start_calibration();
+  for (int i = 0; i < 100; ++i)
+    (void)loop.process(feed.next(truth_model(), &r), &r);
+  ASSERT_EQ(loop.state(), CalState::kSolving);
+  EXPECT_EQ(loop.solve_ticket(), 1u);
+  // However long the solve takes, samples keep their records, flagged as calibrating.
+  for (int i = 0; i < 1000; ++i) {
+    const OutputRecord<double> rec = loop.process(feed.next(truth_model(), &r), &r);
+    ASSERT_TRUE(rec.flags & kOutCalibrating);
+    ASSERT_EQ(rec.cal_id, 0u);
+  }
+  EXPECT_EQ(loop.state(), CalState::kSolving);
+  EXPECT_EQ(cal.seen, 100u);
+  EXPECT_FALSE(loop.install_solve(0, {true, 0}, truth_model()));  // a stale ticket
+  EXPECT_EQ(loop.state(), CalState::kSolving);
+  EXPECT_TRUE(loop.install_solve(1, {true, 0}, truth_model()));
+  EXPECT_EQ(loop.state(), CalState::kValidating);
+  EXPECT_FALSE(loop.install_solve(1, {true, 0}, truth_model()));  // only once
+  for (int i = 0; i < 200; ++i)
+    (void)loop.process(feed.next(truth_model(), &r), &r);
+  EXPECT_EQ(loop.state(), CalState::kApplied);
+  EXPECT_EQ(loop.cal_id(), 1u);
+}
+
+// A calibration restarted while its solve runs elsewhere: the late result of the old data is not
+// installed into the new calibration.
+TEST(SensorLoop, ExternalSolveOfARestartedCalibrationIsIgnored) {
+  FakeCalibrator cal;
+  LoopConfig<double> cfg;
+  cfg.external_solve = true;
+  SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+  Feed feed;
+  Mat3<double> r;
+  loop.start_calibration();
+  for (int i = 0; i < 101; ++i)
+    (void)loop.process(feed.next(truth_model(), &r), &r);
+  ASSERT_EQ(loop.state(), CalState::kSolving);
+  const std::uint32_t old_ticket = loop.solve_ticket();
+  loop.start_calibration();
+  EXPECT_FALSE(loop.install_solve(old_ticket, {false, 7}, truth_model()));
+  EXPECT_EQ(loop.state(), CalState::kCollecting);
+  EXPECT_EQ(loop.failure(), CalFailure::kNone);
+  for (int i = 0; i < 100; ++i)
+    (void)loop.process(feed.next(truth_model(), &r), &r);
+  EXPECT_EQ(loop.state(), CalState::kSolving);
+  EXPECT_EQ(loop.solve_ticket(), old_ticket + 1);
+  EXPECT_TRUE(loop.install_solve(old_ticket + 1, {false, 7}, truth_model()));
+  EXPECT_EQ(loop.state(), CalState::kFailed);
+  EXPECT_EQ(loop.solver_code(), 7);
+}
+
 TEST(SensorLoop, CountsDropoutsDeviceErrorsMissingAttitudeAndGatedSamples) {
   FakeCalibrator cal;
   SensorLoop<double, FakeCalibrator> loop(cal, LoopConfig<double>{});

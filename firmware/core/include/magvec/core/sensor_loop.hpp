@@ -14,6 +14,15 @@
 //   S progress() const noexcept;                             0..1 (coverage / convergence)
 //   bool ready() const noexcept;                             enough data to solve
 //   CalibratorSolve solve(SensorModel<S>* out) noexcept;     candidate model or a failure code
+//
+// Where the solve runs. By default (the MCU, the simulation) the loop calls solve() itself on the
+// sample after the calibrator reported ready. With LoopConfig::external_solve the owner runs it
+// elsewhere (magvecd: a worker thread) so that a solve of many sample periods never delays a
+// sample: the loop enters kSolving, increments solve_ticket() and keeps compensating with the
+// active model without touching the calibrator (no add(), no progress()), so its data are frozen
+// and the owner may copy them and solve on the copy; install_solve(ticket, result, model) then
+// continues exactly as the inline path would (validation on the following samples). The loop
+// stays allocation-free and thread-agnostic: the hand-over is the owner's.
 #pragma once
 
 #include <cmath>
@@ -127,6 +136,8 @@ struct LoopConfig {
   Scalar validation_min_rms_nT{1};      // ... or <= this floor
   bool validate_against_active{
       true};  // and not worse than the active calibration on the same samples
+  // The owner runs the calibrator's solve and hands the result to install_solve() (see the top).
+  bool external_solve{false};
 };
 
 template <typename Scalar, typename Calibrator>
@@ -163,6 +174,18 @@ class SensorLoop {
   // The candidate of the last solve (valid in kValidating, kApplied, and kFailed after validation).
   const SensorModel<Scalar>& candidate() const noexcept { return candidate_.model(); }
   Scalar last_validation_rms_nT() const noexcept { return last_validation_rms_; }
+
+  // Increments each time the loop enters kSolving (with external_solve: a solve is wanted; the
+  // calibrator's data stay frozen while the state is kSolving).
+  std::uint32_t solve_ticket() const noexcept { return solve_ticket_; }
+  // The result of the external solve of `ticket`. Ignored (false) unless the loop is still
+  // solving that ticket: a calibration restarted meanwhile has a new one.
+  bool install_solve(std::uint32_t ticket, const CalibratorSolve& r,
+                     const SensorModel<Scalar>& model) noexcept {
+    if (state_ != CalState::kSolving || ticket != solve_ticket_) return false;
+    finish_solve(r, model);
+    return true;
+  }
 
   // One magnetometer sample; r_bn is the attitude aligned to s.t_us, or nullptr when none is valid.
   OutputRecord<Scalar> process(const MagSample<Scalar>& s, const Mat3<Scalar>* r_bn) noexcept {
@@ -211,24 +234,19 @@ class SensorLoop {
           rec->flags |= kOutRejectedByCal;
         }
         if (a == CalibratorAdd::kRejected) ++health_.cal_rejected;
-        if (calibrator_.ready()) state_ = CalState::kSolving;
+        if (calibrator_.ready()) {
+          state_ = CalState::kSolving;
+          ++solve_ticket_;
+        }
         break;
       }
       case CalState::kSolving: {
+        if (config_.external_solve) break;  // install_solve() continues
         // Solving happens on the sample after the calibrator reported ready, so a long solve
         // never delays the sample that completed the data set.
         SensorModel<Scalar> model;
         const CalibratorSolve r = calibrator_.solve(&model);
-        if (!r.ok) {
-          fail(CalFailure::kSolverRejected, r.code);
-          break;
-        }
-        candidate_.set_model(model);
-        validation_count_ = 0;
-        sum_sq_candidate_ = 0;
-        missing_reference_ = 0;
-        sum_sq_active_ = 0;
-        state_ = CalState::kValidating;
+        finish_solve(r, model);
         break;
       }
       case CalState::kValidating:
@@ -239,6 +257,19 @@ class SensorLoop {
       case CalState::kFailed:
         break;
     }
+  }
+
+  void finish_solve(const CalibratorSolve& r, const SensorModel<Scalar>& model) noexcept {
+    if (!r.ok) {
+      fail(CalFailure::kSolverRejected, r.code);
+      return;
+    }
+    candidate_.set_model(model);
+    validation_count_ = 0;
+    sum_sq_candidate_ = 0;
+    missing_reference_ = 0;
+    sum_sq_active_ = 0;
+    state_ = CalState::kValidating;
   }
 
   void validate(const MagSample<Scalar>& s) noexcept {
@@ -288,6 +319,7 @@ class SensorLoop {
   CalState state_{CalState::kIdle};
   CalFailure failure_{CalFailure::kNone};
   std::uint8_t solver_code_{0};
+  std::uint32_t solve_ticket_{0};
   std::uint32_t validation_count_{0};
   std::uint32_t missing_reference_{0};
   Scalar sum_sq_candidate_{0};

@@ -16,11 +16,11 @@
 #include <iostream>
 #include <limits>
 #include <memory>
-#include <sstream>
 #include <string>
 
 #include "calibration/calibration_file.hpp"
 #include "commands.hpp"
+#include "fault_spec.hpp"
 #include "magvec/core/batch_li_calibrator.hpp"
 #include "magvec/core/ekf_calibrator.hpp"
 #include "magvec/host/hil/csv_record_sink.hpp"
@@ -89,83 +89,6 @@ void describe(const EkfCal& cal, std::ostream& os) {
     const double deg = 180.0 / core::kPi<double>;
     os << "  alignment: Rm [deg] " << (cal.alignment().rm_rad * deg).transpose() << ", h_n [nT] "
        << cal.alignment().h_n.transpose() << "\n";
-  }
-}
-
-double number(const std::string& key, const std::string& text) {
-  std::size_t used = 0;
-  double v = 0;
-  try {
-    v = std::stod(text, &used);
-  } catch (const std::exception&) {
-    used = 0;
-  }
-  if (used != text.size() || !std::isfinite(v))
-    throw CLI::ValidationError("--faults", key + ": not a number: '" + text + "'");
-  return v;
-}
-
-double probability(const std::string& key, const std::string& text) {
-  const double p = number(key, text);
-  if (p < 0 || p > 1)
-    throw CLI::ValidationError("--faults", key + ": probability must be in [0, 1]");
-  return p;
-}
-
-// "a:b" -> (a, b)
-std::pair<double, double> pair_of(const std::string& key, const std::string& text) {
-  const auto colon = text.find(':');
-  if (colon == std::string::npos)
-    throw CLI::ValidationError("--faults",
-                               key + " needs START:LENGTH (seconds), got '" + text + "'");
-  return {number(key, text.substr(0, colon)), number(key, text.substr(colon + 1))};
-}
-
-// --faults key=value,...; keys documented in the option help.
-void apply_faults(const std::string& spec, drivers::sim::ScenarioConfig* sc,
-                  drivers::sim::SimRigConfig* rc) {
-  std::stringstream ss(spec);
-  std::string item;
-  while (std::getline(ss, item, ',')) {
-    if (item.empty()) continue;
-    const auto eq = item.find('=');
-    if (eq == std::string::npos)
-      throw CLI::ValidationError("--faults", "expected key=value, got '" + item + "'");
-    const std::string key = item.substr(0, eq);
-    const std::string val = item.substr(eq + 1);
-    if (key == "crc") {
-      rc->adc.faults.crc_error_probability = probability(key, val);
-    } else if (key == "saturation") {
-      rc->adc.faults.saturation_probability = probability(key, val);
-    } else if (key == "dropout") {
-      sc->dropout_probability = probability(key, val);
-    } else if (key == "spike") {
-      sc->spike_probability = probability(key, val);
-      if (sc->spike_amplitude_nT == 0) sc->spike_amplitude_nT = 1000;
-    } else if (key == "garbage") {
-      rc->serial.faults.garbage_probability = probability(key, val);
-    } else if (key == "bad-checksum") {
-      rc->serial.faults.bad_checksum_probability = probability(key, val);
-    } else if (key == "ins-corrupt") {
-      rc->ins.faults.corrupt_probability = probability(key, val);
-    } else if (key == "ins-gap") {
-      std::tie(rc->ins.faults.gap_start_s, rc->ins.faults.gap_length_s) = pair_of(key, val);
-    } else if (key == "ins-invalid") {
-      std::tie(rc->ins.faults.invalid_start_s, rc->ins.faults.invalid_length_s) = pair_of(key, val);
-    } else if (key == "ins-latency-us") {
-      const double v = number(key, val);
-      if (v < 0 || v > 1e6)
-        throw CLI::ValidationError("--faults", "ins-latency-us must be in [0, 1e6]");
-      rc->ins.can_latency_us = static_cast<std::uint32_t>(v);
-    } else if (key == "clock-jump") {
-      const auto [at, jump_s] = pair_of(key, val);
-      if (std::fabs(jump_s) > 5.0)
-        throw CLI::ValidationError("--faults", "clock-jump: |jump| must be <= 5 s");
-      rc->time.jump_at_s = at;
-      rc->time.jump_us = std::llround(jump_s * 1e6);
-    } else {
-      throw CLI::ValidationError("--faults", "unknown fault '" + key + "'");
-    }
   }
 }
 
@@ -299,10 +222,7 @@ void register_run(CLI::App& app) {
   sub->add_option("--duration", opt->duration_s, "Simulated seconds (default: the scenario's)")
       ->check(CLI::Range(1e-3, 1e7));
   sub->add_option("--seed", opt->seed, "Random seed")->capture_default_str();
-  sub->add_option("--faults", opt->faults,
-                  "Comma-separated faults: crc=P, saturation=P, dropout=P, spike=P (SPI/any), "
-                  "garbage=P, bad-checksum=P (serial), ins-corrupt=P, ins-gap=START:LEN, "
-                  "ins-invalid=START:LEN, ins-latency-us=N, clock-jump=AT:JUMP_S");
+  sub->add_option("--faults", opt->faults, kFaultsHelp);
   sub->add_option("--link", opt->link, "Magnetometer link")
       ->check(CLI::IsMember({"spi", "serial"}))
       ->capture_default_str();

@@ -21,6 +21,7 @@ void register_report(CLI::App& app);
 void register_calibrate(CLI::App& app);
 void register_replay(CLI::App& app);
 void register_ctl(CLI::App& app);
+void register_soak(CLI::App& app);
 
 // Thrown by a subcommand that must end with a specific exit status (e.g. calibrate: 2 bad input,
 // 3 refused calibration); main prints what() (when not empty) and returns status().

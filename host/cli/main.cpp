@@ -1,4 +1,4 @@
-// magvec: command-line front end (simulate, calibrate, apply, run, replay, ctl, report).
+// magvec: command-line front end (simulate, calibrate, apply, run, replay, ctl, report, soak).
 // Subcommands register themselves (commands.hpp); errors end with a message and a non-zero exit.
 #include <CLI/CLI.hpp>
 #include <exception>
@@ -19,6 +19,7 @@ int main(int argc, char** argv) {
   magvec::host::cli::register_calibrate(app);
   magvec::host::cli::register_replay(app);
   magvec::host::cli::register_ctl(app);
+  magvec::host::cli::register_soak(app);
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

@@ -281,19 +281,21 @@ void SimSbgIns::emit_epoch(std::uint64_t k, const HostTimeMap& time) noexcept {
           : (static_cast<std::uint32_t>(sbg::SolutionMode::kNavPosition) | sbg::kSolAttitudeValid |
              sbg::kSolHeadingValid | sbg::kSolVelocityValid | sbg::kSolPositionValid);
   const sbg::CanIds& ids = config_.ids;
-  bool lost = false;
+  bool time_lost = false;
+  bool attitude_lost = false;
   if (config_.status01_every != 0 && k % config_.status01_every == 0)
     push(sbg::encode_status_01(ins_time, 0, 0, ids), t_rx, 8, nullptr);
-  push(sbg::encode_ekf_info(ins_time, ids), t_rx, 4, &lost);
+  push(sbg::encode_ekf_info(ins_time, ids), t_rx, 4, &time_lost);
   push(sbg::encode_status_03(solution, 0, ids), t_rx, 6, nullptr);
   push(sbg::encode_orientation_acc(config_.accuracy_rad, config_.accuracy_rad, config_.accuracy_rad,
                                    ids),
        t_rx, 6, nullptr);
   const core::YawPitchRoll<double> ypr = core::ypr_from_r_bn(r_bn);
   push(sbg::encode_ekf_euler(ypr.roll, ypr.pitch, ypr.yaw, ids), t_rx, 6, nullptr);
-  push(sbg::encode_ekf_quat(sbg::sbg_quat_from_r_bn(r_bn), ids), t_rx, 8, &lost);
+  push(sbg::encode_ekf_quat(sbg::sbg_quat_from_r_bn(r_bn), ids), t_rx, 8, &attitude_lost);
   ++injected_.epochs;
-  if (lost) ++injected_.corrupted_epochs;
+  if (time_lost || attitude_lost) ++injected_.corrupted_epochs;
+  if (time_lost && !attitude_lost) ++injected_.untimed_epochs;
 }
 
 void SimSbgIns::run_until(double t_s, const HostTimeMap& time) noexcept {

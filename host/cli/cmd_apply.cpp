@@ -7,6 +7,8 @@
 // within 4 attitude periods the E/N/U are not computed (flag 4, no attitude).
 // flags uses the SensorLoop's bits (core::OutputFlag): 1 dropout, 4 no attitude, 32 outlier
 // (|F - F_ref| above the threshold; only when the input has a scalar reference).
+// Exit status: 0 ok, 2 bad input (the recording or cal.json: the message names the file and the
+// cause), 1 any other failure (e.g. the output cannot be written).
 #include <CLI/CLI.hpp>
 #include <algorithm>
 #include <cmath>
@@ -167,7 +169,9 @@ void run(const ApplyOptions& o) {
 void register_apply(CLI::App& app) {
   auto opts = std::make_shared<ApplyOptions>();
   CLI::App* cmd =
-      app.add_subcommand("apply", "Compensate a recording with a calibration (cal.json)");
+      app.add_subcommand("apply",
+                         "Compensate a recording with a calibration (cal.json) (exit 0 ok, 2 bad "
+                         "input: the recording or cal.json)");
   cmd->add_option("--cal", opts->cal_path, "Calibration file (cal.json)")->required();
   cmd->add_option("--in", opts->in_path, "Input CSV recording")->required();
   cmd->add_option("--out", opts->out_path, "Output CSV")->required();
@@ -180,7 +184,18 @@ void register_apply(CLI::App& app) {
                   "Magnetometer-minus-INS time offset [s] (default: the calibration's "
                   "time_offset_s)")
       ->check(CLI::Range(-10.0, 10.0));
-  cmd->callback([opts] { run(*opts); });
+  // Bad input (the recording or cal.json unreadable, malformed or out of range) exits 2 like
+  // `magvec calibrate`; the messages name the file and the cause (and the line and column of a
+  // CSV). Other failures (e.g. the output cannot be written) exit 1 through main.
+  cmd->callback([opts] {
+    try {
+      run(*opts);
+    } catch (const io::CsvError& e) {
+      throw CommandExit(2, e.what());
+    } catch (const CalibrationFileError& e) {
+      throw CommandExit(2, e.what());
+    }
+  });
 }
 
 }  // namespace magvec::host::cli

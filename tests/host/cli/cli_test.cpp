@@ -1,5 +1,5 @@
 // End-to-end tests of the magvec CLI: --version, simulate (CSV + truth header, determinism, bad
-// option values -> non-zero exit) and the temporary demo.
+// option values -> non-zero exit), apply's exit status on bad input, and the temporary demo.
 #include <gtest/gtest.h>
 
 #include <stdlib.h>
@@ -149,6 +149,70 @@ TEST_F(Cli, BadOptionValuesFailWithAMessage) {
     EXPECT_NE(r.output.find(c.message), std::string::npos) << r.output;
   }
   EXPECT_FALSE(fs::exists(file("x.csv")));
+}
+
+// `magvec apply` on a bad recording or a bad cal.json exits 2 (bad input, as `magvec calibrate`),
+// names the file and the cause, and leaves no output; an output that cannot be written is not
+// bad input (exit 1).
+TEST_F(Cli, ApplyBadInputExitsTwoNamingTheFileAndTheCause) {
+  ASSERT_EQ(run("simulate --scenario li2023 --seed 1 --out " + file("li.csv")).status, 0);
+  const Result cal =
+      run("calibrate --method li-ml --in " + file("li.csv") + " --out " + file("cal.json"));
+  ASSERT_EQ(cal.status, 0) << cal.output;
+  const Result ok = run("apply --cal " + file("cal.json") + " --in " + file("li.csv") + " --out " +
+                        file("o.csv"));
+  ASSERT_EQ(ok.status, 0) << ok.output;
+  fs::remove(file("o.csv"));
+
+  const std::string good = slurp(file("cal.json"));
+  const std::string key = "\"time_offset_s\": ";
+  const std::size_t at = good.find(key);
+  ASSERT_NE(at, std::string::npos) << good;
+  const std::size_t end = good.find_first_of(",\n}", at + key.size());
+  auto with_offset = [&](const std::string& value) {
+    return good.substr(0, at + key.size()) + value + good.substr(end);
+  };
+  auto write = [&](const char* name, const std::string& text) {
+    std::ofstream(file(name), std::ios::binary) << text;
+  };
+  write("garbage.json", "{\"schema\": \"magvec-calibration/1\", ");
+  write("overflow.json", with_offset("1e474"));  // nlohmann: out_of_range while parsing
+  write("type.json", with_offset("\"soon\""));   // nlohmann: a string where a number belongs
+  write("bad.csv",
+        "t_s,hx_nT,hy_nT,hz_nT,F_nT,alpha_deg,beta_deg,gamma_deg\n"
+        "0,1,2,3,50000,0,0,0\n"
+        "0.1,1,2,abc,50000,0,0,0\n");
+  write("quat.csv",
+        "t_s,hx_nT,hy_nT,hz_nT,qw,qx,qy,qz\n"
+        "0,1,2,3,1,0,0,0\n"
+        "0.1,1,2,3,1e200,0,0,0\n");
+
+  const struct {
+    std::string cal, in;
+    std::vector<std::string> message;
+  } cases[] = {
+      {"nonexistent.json", "li.csv", {"nonexistent.json", "cannot open"}},
+      {"garbage.json", "li.csv", {"garbage.json", "not valid JSON"}},
+      {"overflow.json", "li.csv", {"overflow.json", "time_offset_s", "1e474"}},
+      {"type.json", "li.csv", {"type.json", "'time_offset_s' must be a finite number"}},
+      {"cal.json", "nonexistent.csv", {"nonexistent.csv", "cannot open"}},
+      {"cal.json", "bad.csv", {"bad.csv:3", "hz_nT", "malformed number 'abc'"}},
+      {"cal.json", "quat.csv", {"quat.csv:3", "qw", "quaternion is not unit (norm overflows)"}},
+  };
+  for (const auto& c : cases) {
+    SCOPED_TRACE(c.cal + " " + c.in);
+    const Result r = run("apply --cal " + file(c.cal.c_str()) + " --in " + file(c.in.c_str()) +
+                         " --out " + file("o.csv"));
+    EXPECT_EQ(r.status, 2) << r.output;
+    for (const std::string& m : c.message)
+      EXPECT_NE(r.output.find(m), std::string::npos) << m << "\n" << r.output;
+    EXPECT_FALSE(fs::exists(file("o.csv")));
+  }
+
+  const Result unwritable = run("apply --cal " + file("cal.json") + " --in " + file("li.csv") +
+                                " --out " + file("missing/dir/o.csv"));
+  EXPECT_EQ(unwritable.status, 1) << unwritable.output;
+  EXPECT_NE(unwritable.output.find("missing/dir/o.csv"), std::string::npos) << unwritable.output;
 }
 
 TEST_F(Cli, DemoCalibratesInTheLoopAndWritesRecordsAndCalibration) {

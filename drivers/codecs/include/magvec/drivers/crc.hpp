@@ -16,14 +16,16 @@ namespace magvec::drivers {
 
 constexpr std::uint16_t crc16_ccitt(std::span<const std::uint8_t> data,
                                     std::uint16_t crc = 0xFFFF) noexcept {
+  // The shifts are done on an unsigned 32-bit copy: shifting the uint16_t itself promotes it to
+  // (signed) int, and GCC's -fsanitize=shift then reports the int-to-unsigned conversion of the
+  // result under -Wsign-conversion.
+  std::uint32_t c = crc;
   for (const std::uint8_t byte : data) {
-    crc = static_cast<std::uint16_t>(crc ^ (static_cast<std::uint16_t>(byte) << 8));
-    for (int bit = 0; bit < 8; ++bit) {
-      crc = (crc & 0x8000u) != 0 ? static_cast<std::uint16_t>((crc << 1) ^ 0x1021u)
-                                 : static_cast<std::uint16_t>(crc << 1);
-    }
+    c ^= static_cast<std::uint32_t>(byte) << 8u;
+    for (int bit = 0; bit < 8; ++bit)
+      c = (c & 0x8000u) != 0 ? ((c << 1u) ^ 0x1021u) & 0xFFFFu : (c << 1u) & 0xFFFFu;
   }
-  return crc;
+  return static_cast<std::uint16_t>(c);
 }
 
 constexpr std::uint32_t crc32_update(std::uint32_t state,

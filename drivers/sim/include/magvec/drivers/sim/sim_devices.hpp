@@ -222,9 +222,9 @@ struct SimSbgInjected {
   // Of those, the epochs whose EKF_INFO (time) frame was corrupted but whose attitude frame was
   // intact: the decoder sees an attitude frame without its time (its missing_time counter).
   std::uint32_t untimed_epochs{0};
-  std::uint32_t frames{0};            // frames queued
-  std::uint32_t overflow_frames{0};   // frames lost because the bus queue was full
-  std::uint32_t sent_by_host{0};      // frames the host sent to the INS (ignored)
+  std::uint32_t frames{0};           // frames queued
+  std::uint32_t overflow_frames{0};  // frames lost because the bus queue was full
+  std::uint32_t sent_by_host{0};     // frames the host sent to the INS (ignored)
 };
 
 class SimSbgIns final : public hal::CanBus {

@@ -1,6 +1,8 @@
-// `magvec ctl start|accept|revert|status [--lcm-url URL]`: sends a command to magvecd over LCM
-// and prints its reply (magvec_lcm.command / command_reply). Exit 0 when the daemon accepted the
-// command, 3 when it refused it, 4 when no reply came within --timeout.
+// `magvec ctl start|accept|revert|status [--lcm-url URL] [--command-url URL]`: sends a command to
+// magvecd over LCM and prints its reply (magvec_lcm.command / command_reply). Exit 0 when the
+// daemon accepted the command, 3 when it refused it, 4 when no reply came within --timeout.
+// Commands and replies travel on the daemon's command URL (lcm.command_url; by default its data
+// URL's udpm port + 1), so ctl does not receive the daemon's data traffic.
 #include <CLI/CLI.hpp>
 #include <chrono>
 #include <iomanip>
@@ -13,6 +15,7 @@
 #include <string>
 
 #include "commands.hpp"
+#include "magvec/host/daemon/config.hpp"
 
 namespace magvec::host::cli {
 namespace {
@@ -20,6 +23,7 @@ namespace {
 struct CtlOptions {
   std::string command;
   std::string url = "udpm://239.255.76.67:7667?ttl=0";
+  std::string command_url;  // empty: derived from url as the daemon does
   std::string command_channel = "MAGVEC_CMD";
   std::string reply_channel = "MAGVEC_CMD_REPLY";
   double timeout_s = 2.0;
@@ -37,8 +41,9 @@ struct ReplyWaiter {
 };
 
 void run(const CtlOptions& o) {
-  lcm::LCM l(o.url);
-  if (!l.good()) throw CommandExit(5, "LCM provider " + o.url + " is not available");
+  const std::string url = o.command_url.empty() ? daemon::command_url_for(o.url) : o.command_url;
+  lcm::LCM l(url);
+  if (!l.good()) throw CommandExit(5, "LCM provider " + url + " is not available");
   ReplyWaiter w;
   std::random_device rd;
   w.id =
@@ -65,7 +70,8 @@ void run(const CtlOptions& o) {
   }
   if (!w.got)
     throw CommandExit(4, "no reply from magvecd on " + o.reply_channel + " within " +
-                             std::to_string(o.timeout_s) + " s (is it running on " + o.url + "?)");
+                             std::to_string(o.timeout_s) + " s (is it running with commands on " +
+                             url + "?)");
   const auto& r = w.reply;
   const auto& s = r.state;
   std::cout << (r.ok ? "ok: " : "refused: ") << r.message << "\n";
@@ -85,7 +91,9 @@ void register_ctl(CLI::App& app) {
   sub->add_option("command", opt->command, "start | accept | revert | status")
       ->required()
       ->check(CLI::IsMember({"start", "accept", "revert", "status"}));
-  sub->add_option("--lcm-url", opt->url, "LCM URL of the daemon")->capture_default_str();
+  sub->add_option("--lcm-url", opt->url, "LCM URL of the daemon (lcm.url)")->capture_default_str();
+  sub->add_option("--command-url", opt->command_url,
+                  "The daemon's lcm.command_url (default: --lcm-url with the udpm port + 1)");
   sub->add_option("--command-channel", opt->command_channel)->capture_default_str();
   sub->add_option("--reply-channel", opt->reply_channel)->capture_default_str();
   sub->add_option("--timeout", opt->timeout_s, "Seconds to wait for the reply")

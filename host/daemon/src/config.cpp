@@ -6,6 +6,7 @@
 #include <toml++/toml.h>
 #include <cmath>
 #include <cstdint>
+#include <cstdlib>
 #include <fstream>
 #include <optional>
 #include <set>
@@ -269,6 +270,9 @@ Config parse_config(const std::string& text, const std::string& source) {
 
   Table l = top.sub("lcm");
   l.str("url", &c.lcm.url);
+  l.str("command_url", &c.lcm.command_url);
+  if (!c.lcm.command_url.empty() && c.lcm.command_url == c.lcm.url)
+    l.fail("command_url", "must differ from url (the daemon must not receive its own data)");
   Table ch = l.sub("channels");
   ch.str("raw_mag", &c.lcm.channels.raw_mag);
   ch.str("attitude", &c.lcm.channels.attitude);
@@ -349,6 +353,7 @@ Config parse_config(const std::string& text, const std::string& source) {
   cal.boolean("ekf_align", &cc.ekf_align);
   cal.integer("li_min_samples", &cc.li_min_samples, 16, 512);
   cal.number_or_nan("reference_field_nT", &cc.reference_field_nT, 1000, 200000);
+  cal.boolean("solve_on_worker", &cc.solve_on_worker);
   cal.check_unknown();
 
   Table sim = top.sub("sim");
@@ -368,6 +373,33 @@ std::string read_config_text(const std::string& path) {
   os << in.rdbuf();
   if (in.bad()) throw ConfigError(path + ": read error");
   return os.str();
+}
+
+std::string command_url_for(const std::string& url) {
+  // udpm://GROUP:PORT?OPTIONS (GROUP:PORT optional: LCM's default 239.255.76.67:7667).
+  const std::string scheme = "udpm://";
+  if (url.rfind(scheme, 0) != 0) return url;
+  const std::size_t q = url.find('?');
+  const std::string address =
+      url.substr(scheme.size(), q == std::string::npos ? q : q - scheme.size());
+  const std::string options = q == std::string::npos ? "" : url.substr(q);
+  std::string group = "239.255.76.67";
+  long port = 7667;
+  if (!address.empty()) {
+    const std::size_t colon = address.rfind(':');
+    group = address.substr(0, colon);
+    if (colon != std::string::npos) {
+      char* end = nullptr;
+      port = std::strtol(address.c_str() + colon + 1, &end, 10);
+      if (end == address.c_str() + colon + 1 || *end != '\0' || port < 1 || port > 65535)
+        return url;  // not understood: LCM will report it
+    }
+  }
+  return scheme + group + ":" + std::to_string(port == 65535 ? 65534 : port + 1) + options;
+}
+
+std::string command_url(const LcmConfig& c) {
+  return c.command_url.empty() ? command_url_for(c.url) : c.command_url;
 }
 
 const std::string& default_config_text() {

@@ -31,6 +31,21 @@ void EventPipeline::apply(const magvec_lcm::pipeline_event& e) {
       }
       pipeline_->start_calibration();
       return;
+    case magvec_lcm::pipeline_event::SOLVE_ON_WORKER:
+      if (!pipeline_) {
+        ++skipped_;
+        return;
+      }
+      pipeline_->set_external_solve(true);
+      return;
+    case magvec_lcm::pipeline_event::SOLVE_RESULT:
+      if (!pipeline_) {
+        ++skipped_;
+        return;
+      }
+      // A stale result (its calibration restarted first) is ignored, live and in a replay alike.
+      if (!pipeline_->install_solve(solve_result_from(e))) ++stale_solves_;
+      return;
     default:
       ++unknown_events_;
       return;

@@ -143,6 +143,28 @@ magvec_lcm::pipeline_event start_calibration_event(std::int64_t sequence) {
   return blank_event(magvec_lcm::pipeline_event::START_CALIBRATION, sequence);
 }
 
+magvec_lcm::pipeline_event solve_on_worker_event(std::int64_t sequence) {
+  return blank_event(magvec_lcm::pipeline_event::SOLVE_ON_WORKER, sequence);
+}
+
+magvec_lcm::pipeline_event solve_result_event(std::int64_t sequence, const SolveResult& r) {
+  magvec_lcm::pipeline_event e = blank_event(magvec_lcm::pipeline_event::SOLVE_RESULT, sequence);
+  model_to_arrays(r.model, e.w, e.o_nT, e.rm_quat);
+  e.cal_id = static_cast<std::int32_t>(r.ticket);
+  e.time_offset_s = r.ok ? -1.0 : static_cast<double>(r.code);
+  return e;
+}
+
+SolveResult solve_result_from(const magvec_lcm::pipeline_event& e) noexcept {
+  SolveResult r;
+  r.ticket = static_cast<std::uint32_t>(e.cal_id);
+  r.ok = e.time_offset_s < 0;
+  r.code = r.ok || !(e.time_offset_s <= 255) ? std::uint8_t{0}
+                                             : static_cast<std::uint8_t>(e.time_offset_s);
+  r.model = model_from_arrays(e.w, e.o_nT, e.rm_quat);
+  return r;
+}
+
 magvec_lcm::calibration_state to_lcm(const CalibrationStatus& s, std::uint64_t t_us,
                                      std::uint32_t persisted_cal_id) {
   magvec_lcm::calibration_state m{};

@@ -50,6 +50,27 @@ class PipelineImpl final : public Pipeline {
   void set_active(const core::SensorModel<double>& model, std::uint32_t cal_id) noexcept override {
     core_.loop().set_active(model, cal_id);
   }
+  void set_external_solve(bool on) noexcept override { core_.loop().set_external_solve(on); }
+  SolveJob take_solve_job() override {
+    const auto& lp = core_.loop();
+    if (lp.state() != core::CalState::kSolving || lp.solve_ticket() == handed_ticket_) return {};
+    handed_ticket_ = lp.solve_ticket();
+    // The calibrator is frozen while the loop is solving, but a restart (begin()) or the end of
+    // the session may come before the job ran: the job solves on its own copy.
+    auto snapshot = std::make_shared<Calibrator>(*cal_);
+    const std::uint32_t ticket = handed_ticket_;
+    return [snapshot, ticket] {
+      SolveResult r;
+      r.ticket = ticket;
+      const core::CalibratorSolve s = snapshot->solve(&r.model);
+      r.ok = s.ok;
+      r.code = s.code;
+      return r;
+    };
+  }
+  bool install_solve(const SolveResult& r) noexcept override {
+    return core_.loop().install_solve(r.ticket, core::CalibratorSolve{r.ok, r.code}, r.model);
+  }
   CalibrationStatus status() const override {
     const auto& lp = core_.loop();
     CalibrationStatus s;
@@ -75,6 +96,7 @@ class PipelineImpl final : public Pipeline {
   std::unique_ptr<Calibrator> cal_;
   hil::LoopCore<Calibrator> core_;
   bool offset_fixed_;
+  std::uint32_t handed_ticket_{0};
 };
 
 }  // namespace

@@ -178,6 +178,8 @@ class SensorLoop {
   // Increments each time the loop enters kSolving (with external_solve: a solve is wanted; the
   // calibrator's data stay frozen while the state is kSolving).
   std::uint32_t solve_ticket() const noexcept { return solve_ticket_; }
+  // Switches LoopConfig::external_solve (magvecd: a session declares it in its event log).
+  void set_external_solve(bool on) noexcept { config_.external_solve = on; }
   // The result of the external solve of `ticket`. Ignored (false) unless the loop is still
   // solving that ticket: a calibration restarted meanwhile has a new one.
   bool install_solve(std::uint32_t ticket, const CalibratorSolve& r,

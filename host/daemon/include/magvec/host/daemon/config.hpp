@@ -76,6 +76,9 @@ struct CalibrationConfig {
   std::uint32_t li_min_samples{300};  // li: kept (decimated) samples before solving
   // Scalar reference |h| for real devices (nan: none; the simulated rig provides its own).
   double reference_field_nT{std::numeric_limits<double>::quiet_NaN()};
+  // The calibrator's solve runs on a worker thread (the result is installed, and logged, as a
+  // SOLVE_RESULT pipeline event), so no sample waits for it; false: inline, as on the MCU.
+  bool solve_on_worker{true};
 };
 
 struct SimConfig {
@@ -94,9 +97,20 @@ struct DaemonSection {
 };
 
 struct LcmConfig {
+  // Data: raw inputs, pipeline events, outputs, state, health (publish only: the daemon never
+  // receives its own publications).
   std::string url{"udpm://239.255.76.67:7667?ttl=0"};
+  // Commands and replies (`magvec ctl`); empty: derived from url (command_url_for).
+  std::string command_url{};
   LcmChannels channels{};
 };
+
+// The command URL of a daemon on `url` when lcm.command_url is empty: a udpm URL with the port
+// + 1 (another multicast port, so the daemon's command socket never receives the data traffic);
+// any other provider: url itself.
+std::string command_url_for(const std::string& url);
+// lcm.command_url, or the one derived from lcm.url.
+std::string command_url(const LcmConfig& c);
 
 struct Config {
   DaemonSection daemon{};

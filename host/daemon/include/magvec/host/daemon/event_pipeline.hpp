@@ -7,6 +7,8 @@
 //   (a SESSION_START first flushes the previous pipeline: its pending samples get their records;
 //   flush() does the same at the end of a stream: daemon stop, end of a replayed log)
 //   pipeline_event START_CALIBRATION -> start_calibration()
+//   pipeline_event SOLVE_ON_WORKER   -> set_external_solve(true): the session's solves come as
+//   pipeline_event SOLVE_RESULT      -> install_solve (where it is in the event order)
 //   mag_sample / attitude         -> on_magnetometer / on_attitude
 // Samples before the first SESSION_START have no pipeline: they are counted and skipped.
 #pragma once
@@ -37,6 +39,7 @@ class EventPipeline {
   std::uint64_t sessions() const noexcept { return sessions_; }
   std::uint64_t skipped_before_session() const noexcept { return skipped_; }
   std::uint64_t unknown_events() const noexcept { return unknown_events_; }
+  std::uint64_t stale_solves() const noexcept { return stale_solves_; }
 
  private:
   hal::RecordSink& sink_;
@@ -45,6 +48,7 @@ class EventPipeline {
   std::uint64_t sessions_{0};
   std::uint64_t skipped_{0};
   std::uint64_t unknown_events_{0};
+  std::uint64_t stale_solves_{0};
 };
 
 }  // namespace magvec::host::daemon

@@ -41,6 +41,9 @@ magvec_lcm::pipeline_event set_active_event(std::int64_t sequence,
                                             const core::SensorModel<double>& model,
                                             std::uint32_t cal_id, double time_offset_s = 0);
 magvec_lcm::pipeline_event start_calibration_event(std::int64_t sequence);
+magvec_lcm::pipeline_event solve_on_worker_event(std::int64_t sequence);
+magvec_lcm::pipeline_event solve_result_event(std::int64_t sequence, const SolveResult& r);
+SolveResult solve_result_from(const magvec_lcm::pipeline_event& e) noexcept;
 
 magvec_lcm::calibration_state to_lcm(const CalibrationStatus& s, std::uint64_t t_us,
                                      std::uint32_t persisted_cal_id);

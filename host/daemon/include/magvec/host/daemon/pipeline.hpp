@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <string>
 
@@ -31,6 +32,17 @@ struct CalibrationStatus {
   core::SensorModel<double> active{};
 };
 
+// A solve handed off the acquisition path (see Pipeline::take_solve_job).
+struct SolveResult {
+  std::uint32_t ticket{0};  // the loop's solve ticket (SensorLoop::solve_ticket)
+  bool ok{false};
+  std::uint8_t code{0};  // the calibrator's refusal code when !ok
+  core::SensorModel<double> model{};
+};
+// Self-contained (owns a copy of the calibrator's data): may run on any thread, and after the
+// pipeline that made it is gone.
+using SolveJob = std::function<SolveResult()>;
+
 class Pipeline {
  public:
   // Throws ConfigError for an unknown calibration mode.
@@ -50,6 +62,15 @@ class Pipeline {
   virtual void start_calibration() noexcept = 0;
   virtual void set_active(const core::SensorModel<double>& model,
                           std::uint32_t cal_id) noexcept = 0;
+
+  // Solving off the acquisition path (magvecd's worker thread). With set_external_solve(true) the
+  // loop does not solve itself: once it is solving, take_solve_job() returns the job once (empty
+  // otherwise); its result goes back through install_solve (false: stale, e.g. the calibration
+  // restarted meanwhile). The records do not depend on where the job ran, only on where in the
+  // event order its result is installed.
+  virtual void set_external_solve(bool on) noexcept = 0;
+  virtual SolveJob take_solve_job() = 0;
+  virtual bool install_solve(const SolveResult& r) noexcept = 0;
 
   virtual CalibrationStatus status() const = 0;
   virtual core::CalState state() const noexcept = 0;  // cheap: for change detection

@@ -1,0 +1,53 @@
+// magvecd's devices: where the raw input events come from and in which order.
+//   - SimDevices (--sim): the simulated rig (drivers/sim SimRig) read through the real drivers
+//     (hil::SimFrontEnd), one step per magnetometer period, paced on a clock;
+//   - RealDevices: the Linux transports (spidev + libgpiod DRDY ADS131M04, or a termios serial
+//     fluxgate; SocketCAN SBG INS), time-ordered by DeviceFeed (device_feed.hpp).
+// Waiting is done through a callback so that the daemon serves its commands meanwhile.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <string>
+
+#include "magvec/hal/attitude_source.hpp"
+#include "magvec/hal/magnetometer_source.hpp"
+#include "magvec/host/daemon/config.hpp"
+
+namespace magvec::host::daemon {
+
+// Receives the raw events in feed order.
+struct EventHandler {
+  virtual void on_attitude(const hal::AttitudeSample& a) = 0;
+  virtual void on_magnetometer(const hal::MagnetometerSample& s, double f_ref_nT) = 0;
+  virtual void on_read_error(hal::Status s) = 0;
+
+ protected:
+  ~EventHandler() = default;
+};
+
+// Waits up to the given microseconds (serving commands meanwhile); may return early.
+using WaitFn = std::function<void(std::uint32_t)>;
+// Monotonic microseconds.
+using NowFn = std::function<std::uint64_t()>;
+
+class Devices {
+ public:
+  virtual ~Devices() = default;
+  // Produces the events due now, waiting at most max_wait_us (through the WaitFn). false when the
+  // source has ended (simulated scenario over).
+  virtual bool poll(EventHandler& h, std::uint32_t max_wait_us) = 0;
+  virtual const hal::MagCounters& mag_counters() const = 0;
+  virtual const hal::AttitudeCounters& attitude_counters() const = 0;
+  virtual std::string describe() const = 0;
+};
+
+// The simulated rig of `c` (sim_setup.hpp), one step per magnetometer period of `now`: a step is
+// taken when it is due; more than 1 s behind, the schedule restarts from now (a stalled process
+// does not replay the backlog at full speed). Throws DaemonError(kExitDevice).
+std::unique_ptr<Devices> open_sim_devices(const Config& c, WaitFn wait, NowFn now);
+// The real devices of `c`. Throws DaemonError(kExitDevice) naming the device that failed.
+std::unique_ptr<Devices> open_real_devices(const Config& c, WaitFn wait);
+
+}  // namespace magvec::host::daemon

@@ -1,0 +1,42 @@
+// magvecd's one persistence path: the accepted calibration is <state_dir>/cal.json (the CLI's
+// calibration file format, written atomically: temp file, fsync, rename, fsync of the directory),
+// loaded at start. A file that cannot be read is never overwritten: load() refuses to start
+// (kExitCorruptParams) and the operator repairs or removes it.
+#pragma once
+
+#include <cstdint>
+#include <string>
+
+#include "magvec/core/sensor_model.hpp"
+#include "magvec/host/daemon/pipeline.hpp"
+
+namespace magvec::host::daemon {
+
+struct PersistedCalibration {
+  bool present{false};
+  core::SensorModel<double> model{};
+  std::uint32_t cal_id{0};
+  double time_offset_s{0};  // cal.json time_offset_s
+};
+
+class CalibrationStore {
+ public:
+  explicit CalibrationStore(std::string state_dir);
+
+  const std::string& path() const noexcept { return path_; }
+  // Reads the file (not present: an empty calibration). Throws DaemonError(kExitCorruptParams)
+  // when it exists but cannot be read; the file is left untouched.
+  PersistedCalibration load();
+  // Writes `status`'s active calibration (cal_id, validation RMS, calibrator in the provenance)
+  // with `time_offset_s`; false (and *error) when the write failed, the previous file intact.
+  bool save(const CalibrationStatus& status, double time_offset_s, const std::string& why,
+            std::string* error);
+  // The calibration in the file (what load() read or save() wrote last).
+  const PersistedCalibration& persisted() const noexcept { return persisted_; }
+
+ private:
+  std::string path_;
+  PersistedCalibration persisted_{};
+};
+
+}  // namespace magvec::host::daemon

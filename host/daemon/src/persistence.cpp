@@ -1,0 +1,75 @@
+// magvecd's persisted calibration; see persistence.hpp.
+#include "magvec/host/daemon/persistence.hpp"
+
+#include <spdlog/spdlog.h>
+
+#include <filesystem>
+#include <system_error>
+
+#include "calibration/calibration_file.hpp"
+#include "magvec/host/daemon/daemon_error.hpp"
+#include "magvec/version.hpp"
+
+namespace magvec::host::daemon {
+
+CalibrationStore::CalibrationStore(std::string state_dir)
+    : path_((std::filesystem::path(std::move(state_dir)) / "cal.json").string()) {}
+
+PersistedCalibration CalibrationStore::load() {
+  PersistedCalibration p;
+  std::error_code ec;
+  if (!std::filesystem::exists(path_, ec)) {
+    spdlog::info("no persisted calibration ({}): starting uncalibrated", path_);
+    persisted_ = p;
+    return p;
+  }
+  try {
+    const host::CalibrationFile f = host::read_calibration_file(path_);
+    p.present = true;
+    p.model = f.model;
+    p.time_offset_s = f.time_offset_s;
+    // A file written by `magvec calibrate` has no cal_id: it becomes calibration 1.
+    const auto it = f.quality.extra.find("cal_id");
+    p.cal_id = it != f.quality.extra.end() && it->second >= 1 && it->second < 4e9
+                   ? static_cast<std::uint32_t>(it->second)
+                   : 1;
+    spdlog::info("loaded persisted calibration {} (cal_id {}, method {}, {})", path_, p.cal_id,
+                 f.provenance.method, f.provenance.created_utc);
+  } catch (const std::exception& e) {
+    throw DaemonError(kExitCorruptParams,
+                      std::string("corrupt calibration file: ") + e.what() +
+                          " - the file is left untouched; repair or remove it (magvecd does not "
+                          "overwrite it)");
+  }
+  persisted_ = p;
+  return p;
+}
+
+bool CalibrationStore::save(const CalibrationStatus& st, double time_offset_s,
+                            const std::string& why, std::string* error) {
+  host::CalibrationFile f;
+  f.model = st.active;
+  // The loop's calibrators do not estimate the time offset: the one in use is kept.
+  f.time_offset_s = time_offset_s;
+  f.quality.verdict = "ok";
+  f.quality.reason = "accepted by magvecd (" + why + ")";
+  f.quality.extra["cal_id"] = st.cal_id;
+  f.quality.extra["validation_rms_nT"] = st.validation_rms_nT;
+  f.provenance.input = "magvecd live calibration";
+  f.provenance.method = st.calibrator;
+  f.provenance.magvec_version = kVersion;
+  f.provenance.created_utc = host::utc_now_iso8601();
+  try {
+    host::write_calibration_file(path_, f);
+  } catch (const std::exception& e) {
+    if (error != nullptr) *error = e.what();
+    return false;
+  }
+  persisted_.present = true;
+  persisted_.model = st.active;
+  persisted_.cal_id = st.cal_id;
+  persisted_.time_offset_s = time_offset_s;
+  return true;
+}
+
+}  // namespace magvec::host::daemon

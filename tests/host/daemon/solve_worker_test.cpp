@@ -1,0 +1,257 @@
+// SolveWorker (host/daemon solve_worker.hpp) and the solve off the acquisition path end to end:
+// a session whose solves run on the worker and are installed by SOLVE_RESULT events wherever they
+// land in the event order replays bit-identically from its log, and calibrates like the inline
+// path.
+#include "magvec/host/daemon/solve_worker.hpp"
+
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <filesystem>
+#include <lcm/lcm-cpp.hpp>
+#include <memory>
+#include <thread>
+#include <vector>
+
+#include "magvec/host/daemon/event_pipeline.hpp"
+#include "magvec/host/daemon/lcm_codec.hpp"
+#include "magvec/host/daemon/replay.hpp"
+#include "magvec/host/daemon/sim_setup.hpp"
+#include "magvec/host/hil/hil_session.hpp"
+
+namespace magvec::host::daemon {
+namespace {
+
+SolveJob job_returning(std::uint32_t ticket, std::atomic<bool>* release = nullptr) {
+  return [ticket, release] {
+    while (release != nullptr && !release->load())
+      std::this_thread::yield();
+    SolveResult r;
+    r.ticket = ticket;
+    r.ok = true;
+    return r;
+  };
+}
+
+SolveWorker::Done wait_result(SolveWorker& w) {
+  for (;;) {
+    if (auto d = w.take_result()) return *d;
+    std::this_thread::yield();
+  }
+}
+
+TEST(SolveWorker, RunsAJobAndHandsBackItsTaggedResult) {
+  SolveWorker w;
+  EXPECT_FALSE(w.take_result().has_value());
+  EXPECT_FALSE(w.submit(7, job_returning(3)));
+  const SolveWorker::Done d = wait_result(w);
+  EXPECT_EQ(d.tag, 7u);
+  EXPECT_EQ(d.result.ticket, 3u);
+  EXPECT_TRUE(d.result.ok);
+  EXPECT_FALSE(w.take_result().has_value());  // taken once
+}
+
+// The hand-over holds one waiting job: a newer one replaces it (the older calibration was
+// superseded), the running one finishes.
+TEST(SolveWorker, ANewerJobReplacesTheWaitingOne) {
+  SolveWorker w;
+  std::atomic<bool> release{false};
+  std::atomic<bool> started{false};
+  EXPECT_FALSE(w.submit(1, [&] {
+    started = true;
+    return job_returning(1, &release)();
+  }));
+  while (!started.load())
+    std::this_thread::yield();
+  // Job 1 is running: jobs 2 and 3 wait in the one slot.
+  std::atomic<bool> never_needed{true};
+  (void)w.submit(2, job_returning(2, &never_needed));
+  EXPECT_TRUE(w.submit(3, job_returning(3)));
+  release = true;
+  std::vector<std::uint64_t> tags;
+  while (tags.empty() || tags.back() != 3)
+    tags.push_back(wait_result(w).tag);
+  EXPECT_EQ(std::count(tags.begin(), tags.end(), 2u), 0);  // replaced before it started
+  EXPECT_FALSE(w.busy());
+}
+
+// A solve cannot be interrupted: destruction waits for the running one (a job not started yet is
+// dropped: its result would have no one to take it).
+TEST(SolveWorker, DestructionWaitsForTheRunningJob) {
+  std::atomic<bool> started{false};
+  std::atomic<bool> finished{false};
+  {
+    SolveWorker w;
+    w.submit(1, [&] {
+      started = true;
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+      finished = true;
+      return SolveResult{};
+    });
+    while (!started.load())
+      std::this_thread::yield();
+  }
+  EXPECT_TRUE(finished.load());
+}
+
+struct VectorSink final : hal::RecordSink {
+  std::vector<hal::OutputRecord> records;
+  hal::Status emit(const hal::OutputRecord& r) noexcept override {
+    records.push_back(r);
+    return hal::Status::kOk;
+  }
+};
+
+std::string fast_config_text() {
+  std::string text = default_config_text();
+  auto patch = [&text](const std::string& from, const std::string& to) {
+    text.replace(text.find(from), from.size(), to);
+  };
+  patch("samples_per_attitude = 10", "samples_per_attitude = 1");
+  patch("li_min_samples = 300", "li_min_samples = 100");
+  patch("validation_samples = 200", "validation_samples = 100");
+  return text;
+}
+
+// Publishes (into an LCM log) and applies, as magvecd does; the solve runs on a SolveWorker and
+// its result is installed when it arrives, at whatever sample that is.
+struct LiveDaemon {
+  struct LoggingSink final : hal::RecordSink {
+    LiveDaemon* d{nullptr};
+    std::vector<hal::OutputRecord> records;
+    hal::Status emit(const hal::OutputRecord& r) noexcept override {
+      records.push_back(r);
+      d->record("MAGVEC_OUTPUT", to_lcm(r));
+      return hal::Status::kOk;
+    }
+  };
+  explicit LiveDaemon(lcm::LogFile& l) : log(l) { sink.d = this; }
+  template <typename Msg>
+  void record(const std::string& ch, const Msg& m) {
+    std::vector<std::uint8_t> buf(static_cast<std::size_t>(m.getEncodedSize()));
+    m.encode(buf.data(), 0, static_cast<int>(buf.size()));
+    lcm::LogEvent ev;
+    ev.eventnum = 0;
+    ev.timestamp = ++t;
+    ev.channel = ch;
+    ev.datalen = static_cast<std::int32_t>(buf.size());
+    ev.data = buf.data();
+    ASSERT_EQ(log.writeEvent(&ev), 0);
+  }
+  void event(const magvec_lcm::pipeline_event& e) {
+    record("MAGVEC_PIPELINE", e);
+    ep.apply(e);
+  }
+  void on_attitude(const hal::AttitudeSample& a) {
+    const auto m = to_lcm(a);
+    record("MAGVEC_ATTITUDE", m);
+    ep.apply(m);
+  }
+  void on_magnetometer(const hal::MagnetometerSample& s, double f) {
+    const auto m = to_lcm(s, f);
+    record("MAGVEC_RAW_MAG", m);
+    ep.apply(m);
+  }
+  void on_read_error(hal::Status) { ep.pipeline()->on_read_error(); }
+  void after_event() {
+    if (SolveJob job = ep.pipeline()->take_solve_job()) {
+      worker.submit(1, std::move(job));
+      ++jobs;
+    }
+    if (auto d = worker.take_result()) event(solve_result_event(++sequence, d->result));
+  }
+
+  lcm::LogFile& log;
+  LoggingSink sink;
+  EventPipeline ep{sink};
+  SolveWorker worker;
+  std::int64_t t{0};
+  std::int64_t sequence{10};
+  int jobs{0};
+};
+
+TEST(SolveOnWorker, CalibratesAndReplaysBitIdentically) {
+  const std::filesystem::path path = std::filesystem::temp_directory_path() /
+                                     ("magvec_solve_worker_" + std::to_string(::getpid()) + ".lcm");
+  std::vector<hal::OutputRecord> live;
+  int jobs = 0;
+  {
+    lcm::LogFile log(path.string(), "w");
+    ASSERT_TRUE(log.good());
+    const Config c = parse_config(fast_config_text(), "test");
+    drivers::sim::Simulator sim(sim_scenario(c), c.sim.seed);
+    auto front = std::make_unique<hil::SimFrontEnd>(sim, sim_rig_config(c));
+    ASSERT_EQ(front->init(), hal::Status::kOk);
+    auto d = std::make_unique<LiveDaemon>(log);
+    d->event(session_start_event(1, fast_config_text()));
+    d->event(solve_on_worker_event(2));
+    d->event(start_calibration_event(3));
+    // Samples keep coming while the worker solves, paced (as a real rig is) so that a loaded
+    // machine only changes how many samples pass before the result is installed.
+    for (int i = 0; i < 20'000; ++i) {
+      if (i >= 1500 && d->ep.pipeline()->state() == core::CalState::kApplied) break;
+      ASSERT_TRUE(front->rig().step());
+      front->poll(*d);
+      d->after_event();
+      if (d->ep.pipeline()->state() == core::CalState::kSolving)
+        std::this_thread::sleep_for(std::chrono::microseconds(200));
+    }
+    d->ep.flush();
+    live = d->sink.records;
+    jobs = d->jobs;
+    EXPECT_EQ(d->ep.pipeline()->status().state, core::CalState::kApplied);
+  }
+  EXPECT_EQ(jobs, 1);
+  ASSERT_FALSE(live.empty());
+  EXPECT_EQ(live.back().cal_id, 1u);
+  VectorSink replayed;
+  const ReplayResult r = replay_log(path.string(), replayed);
+  std::filesystem::remove(path);
+  EXPECT_EQ(r.mismatches, 0u);
+  EXPECT_EQ(r.compared, live.size());
+  ASSERT_EQ(replayed.records.size(), live.size());
+  for (std::size_t i = 0; i < live.size(); ++i)
+    ASSERT_TRUE(bit_identical(live[i], replayed.records[i])) << "record " << i;
+  EXPECT_EQ(r.final_status.state, core::CalState::kApplied);
+}
+
+// Without SOLVE_RESULT events (a log cut short while solving) the replay keeps waiting: it never
+// solves inline what the live daemon solved on its worker.
+TEST(SolveOnWorker, AReplayNeverSolvesInlineForAWorkerSession) {
+  VectorSink sink;
+  EventPipeline ep(sink);
+  ep.apply(session_start_event(1, fast_config_text()));
+  ep.apply(solve_on_worker_event(2));
+  ep.apply(start_calibration_event(3));
+  const Config c = parse_config(fast_config_text(), "test");
+  drivers::sim::Simulator sim(sim_scenario(c), c.sim.seed);
+  auto front = std::make_unique<hil::SimFrontEnd>(sim, sim_rig_config(c));
+  ASSERT_EQ(front->init(), hal::Status::kOk);
+  struct Feed {
+    EventPipeline& ep;
+    void on_attitude(const hal::AttitudeSample& a) { ep.apply(to_lcm(a)); }
+    void on_magnetometer(const hal::MagnetometerSample& s, double f) { ep.apply(to_lcm(s, f)); }
+    void on_read_error(hal::Status) {}
+  } feed{ep};
+  for (int i = 0; i < 1500; ++i) {
+    ASSERT_TRUE(front->rig().step());
+    front->poll(feed);
+  }
+  EXPECT_EQ(ep.pipeline()->state(), core::CalState::kSolving);
+  // A stale ticket is ignored and counted; the right one is installed.
+  SolveResult stale;
+  stale.ticket = 99;
+  ep.apply(solve_result_event(4, stale));
+  EXPECT_EQ(ep.stale_solves(), 1u);
+  SolveJob job = ep.pipeline()->take_solve_job();
+  ASSERT_TRUE(job);
+  EXPECT_FALSE(ep.pipeline()->take_solve_job());  // handed out once
+  ep.apply(solve_result_event(5, job()));
+  EXPECT_EQ(ep.pipeline()->state(), core::CalState::kValidating);
+}
+
+}  // namespace
+}  // namespace magvec::host::daemon

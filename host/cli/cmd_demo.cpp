@@ -20,6 +20,7 @@
 #include "commands.hpp"
 #include "magvec/core/batch_li_calibrator.hpp"
 #include "magvec/core/compensator.hpp"
+#include "magvec/host/hil/calibrators.hpp"
 #include "magvec/host/hil/csv_record_sink.hpp"
 #include "magvec/host/hil/hil_session.hpp"
 #include "magvec/version.hpp"
@@ -28,7 +29,7 @@
 namespace magvec::host::cli {
 namespace {
 
-using LiCal = core::BatchLiCalibrator<double, 512>;
+using LiCal = hil::LiCalibrator;
 using Session = hil::HilSession<LiCal>;
 
 struct DemoOptions {
@@ -172,14 +173,15 @@ void run(const DemoOptions& o) {
   rc.ins.seed = o.seed ^ 0xC3;
   hil::HilConfig hc;
   hc.loop.noise_nT = o.noise_nT > 0 ? o.noise_nT : 1.0;
-  core::BatchLiCalibratorConfig<double> lc;
-  lc.batch.mag_noise_nT = hc.loop.noise_nT;
-  lc.batch.attitude_noise_deg = o.ins_noise_deg > 0 ? o.ins_noise_deg : 0.01;
+  hc.loop.attitude_noise_deg = o.ins_noise_deg > 0 ? o.ins_noise_deg : 0.01;
+  hil::CalibratorSpec spec;
+  spec.noise_nT = hc.loop.noise_nT;
+  spec.attitude_noise_deg = hc.loop.attitude_noise_deg;
 
   hil::CsvRecordSink csv(records_path, {std::string("magvec ") + kVersion + " demo: survey seed " +
                                         std::to_string(o.seed) + ", li calibrator in the loop"});
   ScoringSink sink(csv, sc);
-  auto cal = std::make_unique<LiCal>(lc);
+  auto cal = std::make_unique<LiCal>(hil::li_config(spec));
   auto session = std::make_unique<Session>(sim, rc, *cal, sink, hc);
   sink.attach(session.get());
   if (const hal::Status s = session->init(); s != hal::Status::kOk)

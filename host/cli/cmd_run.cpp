@@ -23,6 +23,7 @@
 #include "fault_spec.hpp"
 #include "magvec/core/batch_li_calibrator.hpp"
 #include "magvec/core/ekf_calibrator.hpp"
+#include "magvec/host/hil/calibrators.hpp"
 #include "magvec/host/hil/csv_record_sink.hpp"
 #include "magvec/host/hil/hil_session.hpp"
 #include "sim_csv.hpp"
@@ -45,8 +46,8 @@ struct RunOptions {
   double time_offset_s = std::numeric_limits<double>::quiet_NaN();
 };
 
-using LiCal = core::BatchLiCalibrator<double, 512>;
-using EkfCal = core::EkfCalibrator<double, 256>;
+using LiCal = host::hil::LiCalibrator;
+using EkfCal = host::hil::EkfLoopCalibrator;
 
 // Calibrator-specific part of the summary.
 std::string solver_reason(const host::hil::NullCalibrator&, std::uint8_t) {
@@ -181,6 +182,7 @@ void run(const RunOptions& o) {
   apply_faults(o.faults, &sc, &rc);
   host::hil::HilConfig hc;
   hc.loop.noise_nT = sc.mag_noise_nT > 0 ? sc.mag_noise_nT : 1.0;
+  hc.loop.attitude_noise_deg = sc.ins_noise_deg > 0 ? sc.ins_noise_deg : 0.01;
   // Configured, never taken from the injected fault: the loop does not know the true latency.
   hc.ins_latency_comp_us = o.ins_latency_comp_us;
   hc.horizon_us = o.fusion_horizon_us;
@@ -191,23 +193,16 @@ void run(const RunOptions& o) {
         host::hil::offset_us_from_s(read_calibration_file(o.calibration).time_offset_s);
   }
   drivers::sim::Simulator sim(sc, o.seed);
-  if (o.calibrator == "li") {
-    core::BatchLiCalibratorConfig<double> lc;
-    lc.batch.mag_noise_nT = sc.mag_noise_nT > 0 ? sc.mag_noise_nT : 1.0;
-    lc.batch.attitude_noise_deg = sc.ins_noise_deg > 0 ? sc.ins_noise_deg : 0.01;
-    auto cal = std::make_unique<LiCal>(lc);
+  host::hil::CalibratorSpec spec;
+  spec.mode = o.calibrator;
+  spec.noise_nT = hc.loop.noise_nT;
+  spec.attitude_noise_deg = hc.loop.attitude_noise_deg;
+  spec.ekf_align = !o.ekf_no_align;
+  host::hil::with_calibrator(spec, [&](auto cal) {
+    using Cal = typename decltype(cal)::element_type;
+    hc.start_calibration = host::hil::kCalibrates<Cal>;
     run_session(o, sim, rc, *cal, hc);
-  } else if (o.calibrator == "ekf") {
-    core::EkfCalibratorConfig<double> ec;
-    ec.ekf.noise_sigma_nT = hc.loop.noise_nT;
-    ec.align = !o.ekf_no_align;
-    auto cal = std::make_unique<EkfCal>(ec);
-    run_session(o, sim, rc, *cal, hc);
-  } else {
-    host::hil::NullCalibrator cal;
-    hc.start_calibration = false;
-    run_session(o, sim, rc, cal, hc);
-  }
+  });
 }
 
 }  // namespace

@@ -104,7 +104,7 @@ def main():
     h = parse(host_out)
     print("host:   " + h["lines"].get("summary", "(no summary)"))
 
-    for key in ("boot", "pcut", "reload", "counts"):
+    for key in ("boot", "pcut", "reload", "counts", "pipeline"):
         c.check(t["lines"].get(key) == h["lines"].get(key),
                 f"{key} identical: '{t['lines'].get(key)}'")
     c.check("initialised=1" in t["lines"].get("ekf", ""), "EKF initialised on target")

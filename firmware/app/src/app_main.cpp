@@ -1,9 +1,12 @@
 // The firmware application: a fixed, deterministic scenario run end to end on the MCU.
 //   Simulator (survey scenario, Li et al. 2023 truth, 50 Hz, fixed seed) -> simulated ADS131M04
 //   (SPI + DRDY) and SBG INS (CAN) speaking the real bytes -> the real codecs (Ads131Fluxgate,
-//   CanAttitudeSource) -> AttitudeBuffer -> core::SensorLoop<Scalar, core::EkfCalibrator>
-//   (Scalar = MAGVEC_APP_SCALAR) -> OutputRecords -> hal::RecordSink (RecordLineSink: semihosting
-//   console, or the board UART) -- the same composition as `magvec run`, without an OS.
+//   CanAttitudeSource) -> pipeline::DevicePipeline (the one sample pipeline: AttitudeBuffer with
+//   the delayed fusion horizon -> core::SensorLoop<Scalar, core::EkfCalibrator>, Scalar =
+//   MAGVEC_APP_SCALAR) -> OutputRecords -> hal::RecordSink (RecordLineSink: semihosting console,
+//   or the board UART) -- the same pipeline as `magvec run`, magvecd and replay, without an OS.
+// The INS frames arrive as on real hardware (after the magnetometer sample they bracket, CAN
+// latency included); a sample waits in the pipeline's queue until they are there.
 // Boot: the ParamStore (FlashParamStore over SimFlash) is read; with no stored calibration the
 // loop starts calibrating (ScalarEkf: initial fit, filter, then the misalignment solve, held-out
 // validation). When the loop applies the calibration it is stored in the ParamStore, a power-cut
@@ -23,9 +26,7 @@
 #include "magvec/app/board.hpp"
 #include "magvec/app/line_writer.hpp"
 #include "magvec/app/record_line_sink.hpp"
-#include "magvec/core/attitude_buffer.hpp"
 #include "magvec/core/ekf_calibrator.hpp"
-#include "magvec/core/frames.hpp"
 #include "magvec/core/sensor_loop.hpp"
 #include "magvec/drivers/ads131_fluxgate.hpp"
 #include "magvec/drivers/param_store.hpp"
@@ -33,6 +34,7 @@
 #include "magvec/drivers/sim/sim_devices.hpp"
 #include "magvec/drivers/sim/simulator.hpp"
 #include "magvec/drivers/sim_flash.hpp"
+#include "magvec/pipeline/device_pipeline.hpp"
 
 #ifndef MAGVEC_APP_SCALAR
 #error "MAGVEC_APP_SCALAR (float or double) must be defined by the build"
@@ -48,6 +50,7 @@ constexpr std::uint64_t kSeed = 20170817;
 constexpr double kRateHz = 50.0;
 constexpr std::uint32_t kRecordEvery = 100;  // survey samples between two record lines
 constexpr std::uint32_t kInsLatencyCompUs = 500;
+constexpr std::uint32_t kFusionHorizonUs = 50'000;
 
 sim::ScenarioConfig make_scenario() noexcept {
   sim::ScenarioConfig c = sim::scenario_survey();
@@ -62,10 +65,6 @@ sim::ScenarioConfig make_scenario() noexcept {
 sim::SimRigConfig make_rig_config() noexcept {
   sim::SimRigConfig r;
   r.adc.transfer.nT_per_volt = {1e5, 1e5, 1e5};
-  // This image queries the attitude buffer when a sample arrives: the rig delivers each INS
-  // epoch 20 ms ahead of the sample, so the bracketing epoch is there (the host pipeline, which
-  // waits for it, sees the INS as real hardware delivers it).
-  r.ins_lead_s = 0.02 + 1e-6 * r.ins.can_latency_us;
   return r;
 }
 
@@ -74,6 +73,9 @@ sim::SimRigConfig make_rig_config() noexcept {
 constexpr std::size_t kAlignCapacity = 128;
 using Calibrator = core::EkfCalibrator<Scalar, kAlignCapacity>;
 using Loop = core::SensorLoop<Scalar, Calibrator>;
+// 64 INS epochs (0.64 s at 100 Hz); 8 queued magnetometer samples (160 ms at 50 Hz) cover the
+// 50 ms fusion horizon with room for late CAN bursts.
+using Pipeline = pipeline::DevicePipeline<Scalar, Calibrator, 64, 8>;
 
 core::EkfCalibratorConfig<Scalar> make_cal_config(const sim::ScenarioConfig& s) noexcept {
   core::EkfCalibratorConfig<Scalar> c;
@@ -84,9 +86,14 @@ core::EkfCalibratorConfig<Scalar> make_cal_config(const sim::ScenarioConfig& s) 
   return c;
 }
 
-core::LoopConfig<Scalar> make_loop_config(const sim::ScenarioConfig& s) noexcept {
-  core::LoopConfig<Scalar> c;
-  c.noise_nT = static_cast<Scalar>(s.mag_noise_nT > 0 ? s.mag_noise_nT : 1.0);
+core::PipelineConfig<Scalar> make_pipeline_config(const sim::ScenarioConfig& s) noexcept {
+  core::PipelineConfig<Scalar> c;
+  c.loop.noise_nT = static_cast<Scalar>(s.mag_noise_nT > 0 ? s.mag_noise_nT : 1.0);
+  c.loop.attitude_noise_deg = static_cast<Scalar>(s.ins_noise_deg > 0 ? s.ins_noise_deg : 0.01);
+  c.ins_latency_us = kInsLatencyCompUs;
+  c.horizon_us = kFusionHorizonUs;
+  c.mag_period_us = pipeline::period_us_from_hz(s.rate_hz);
+  c.ins_period_us = pipeline::period_us_from_hz(make_rig_config().ins.rate_hz);
   return c;
 }
 
@@ -181,9 +188,9 @@ sim::Simulator g_sim(g_scenario, kSeed);
 sim::SimRig g_rig(g_sim, make_rig_config());
 drivers::Ads131Fluxgate g_adc(g_rig.adc(), g_rig.adc(), make_rig_config().adc.transfer);
 drivers::sbg::CanAttitudeSource g_ins(g_rig.ins());
-core::AttitudeBuffer<Scalar, 64> g_attitude{core::AttitudeBufferConfig{}};
 Calibrator g_cal(make_cal_config(g_scenario));
-Loop g_loop(g_cal, make_loop_config(g_scenario));
+Pipeline g_pipeline(g_cal, make_pipeline_config(g_scenario));
+Loop& g_loop = g_pipeline.loop();
 constexpr std::size_t kSector = 1024;
 std::uint8_t g_flash_storage[4 * kSector];
 drivers::SimFlash g_flash(g_flash_storage, kSector);
@@ -241,11 +248,35 @@ PowerCutResult power_cut_sweep(const std::uint8_t (&old_blob)[kBlobBytes],
 
 struct Stats {
   std::uint32_t samples{0}, not_fresh{0}, read_errors{0}, device_errors{0}, att_samples{0},
-      att_rejected{0}, uncal_samples{0}, cal_samples{0}, hn_samples{0};
+      processed{0}, uncal_samples{0}, cal_samples{0}, hn_samples{0};
   double sum_sq_f_uncal{0};  // intensity - F before a calibration is active (identity model)
   double sum_sq_f_cal{0};    // intensity - F with the stored calibration active
   double max_abs_f_cal{0};
   double sum_sq_hn_cal{0};  // |h_n - h_n true|^2 with the stored calibration active
+};
+
+// The truth of the newest samples, by time stamp: a record leaves the pipeline after later
+// samples were read, and is scored against the truth of its own sample.
+struct TruthRing {
+  static constexpr std::size_t kSize = 16;  // > the pipeline's queue (8) + 1
+  struct Entry {
+    std::uint64_t t_us{0};
+    double f_nT{0};
+    core::Vec3<double> h_n_nT = core::Vec3<double>::Zero();
+  };
+  Entry e[kSize];
+  std::size_t next{0};
+  void put(std::uint64_t t_us, double f_nT, const core::Vec3<double>& h_n_nT) noexcept {
+    e[next % kSize] = Entry{t_us, f_nT, h_n_nT};
+    ++next;
+  }
+  const Entry* find(std::uint64_t t_us) const noexcept {
+    for (std::size_t k = 0; k < kSize && k < next; ++k) {
+      const Entry& x = e[(next - 1 - k) % kSize];
+      if (x.t_us == t_us) return &x;
+    }
+    return nullptr;
+  }
 };
 
 // Loop milestones (sample numbers, 1-based, as counted by n=<k>): the insn counting windows.
@@ -345,7 +376,7 @@ int app_main(const char* args) noexcept {
   w.str(" scalar=").str(sizeof(Scalar) == 4 ? "float" : "double").str(" board=").str(board_name());
   w.str(" core=").u(opt.core ? 1 : 0).str(" records=").str(opt.uart ? "uart" : "console").end();
   w.str("MV sizeof loop=").u(sizeof(Loop)).str(" calibrator=").u(sizeof(Calibrator));
-  w.str(" ekf=").u(sizeof(Calibrator::Filter)).str(" attitude_buffer=").u(sizeof(g_attitude));
+  w.str(" ekf=").u(sizeof(Calibrator::Filter)).str(" pipeline=").u(sizeof(g_pipeline));
   w.str(" rig=").u(sizeof(g_rig)).end();
 
   int rc = 0;
@@ -374,22 +405,63 @@ int app_main(const char* args) noexcept {
 
   Stats st;
   Milestones ms;
+  TruthRing truth_ring;
   bool stored = false;
+  bool prev_init = g_cal.filter().initialised();
   core::CalState prev_state = g_loop.state();
+  // Every record, in sample order, when the pipeline processes its sample (INS epochs bracket it
+  // or the fusion horizon expired). `processed` numbers the samples as n=<k> counts them.
+  auto on_record = [&](const core::OutputRecord<Scalar>& rec) noexcept {
+    ++st.processed;
+    // Milestones and the end of the calibration.
+    if (!prev_init && g_cal.filter().initialised() && ms.init_fit == 0) ms.init_fit = st.processed;
+    prev_init = g_cal.filter().initialised();
+    const core::CalState state = g_loop.state();
+    if (state != prev_state) {
+      if (prev_state == core::CalState::kSolving) ms.solve = st.processed;
+      if (state == core::CalState::kApplied) ms.applied = st.processed;
+      if (state == core::CalState::kFailed) {
+        w.str("MV cal_failed failure=").u(static_cast<std::uint64_t>(g_loop.failure()));
+        w.str(" code=").str(core::ekf_cal_code_name(g_loop.solver_code())).end();
+        rc = rc != 0 ? rc : 6;
+      }
+      prev_state = state;
+    }
+    if (state == core::CalState::kApplied && !stored) {
+      stored = true;
+      const int src = store_and_reload(w, blob_old);
+      if (src != 0) rc = rc != 0 ? rc : src;
+    }
+
+    if (opt.records && st.processed % kRecordEvery == 0) {
+      if (sink.emit(pipeline::to_hal_record(rec)) != hal::Status::kOk)
+        g_pipeline.count_sink_error();
+    }
+    if (!opt.records || (rec.flags & core::kOutDropout) != 0) return;
+    // Test statistics (not in quiet runs: they are not part of the per-sample firmware work).
+    const TruthRing::Entry* truth = truth_ring.find(rec.t_us);
+    if (truth == nullptr) return;
+    const double res = static_cast<double>(rec.intensity_nT) - truth->f_nT;
+    if (rec.cal_id == 0) {
+      ++st.uncal_samples;
+      st.sum_sq_f_uncal += res * res;
+      return;
+    }
+    ++st.cal_samples;
+    st.sum_sq_f_cal += res * res;
+    st.max_abs_f_cal = std::fmax(st.max_abs_f_cal, std::fabs(res));
+    if ((rec.flags & core::kOutNoAttitude) == 0) {
+      ++st.hn_samples;
+      st.sum_sq_hn_cal += (rec.h_n_nT.template cast<double>() - truth->h_n_nT).squaredNorm();
+    }
+  };
+
   while (st.samples < opt.max_samples && g_rig.step()) {
-    // INS: every valid epoch into the attitude buffer (validity time = CAN receive - latency).
+    // INS: every epoch received by now (receive time on the CAN clock) into the pipeline.
     hal::AttitudeSample a;
     for (int guard = 0; guard < 256 && g_ins.read(a, 0) == hal::Status::kOk; ++guard) {
       ++st.att_samples;
-      if (!opt.core) continue;
-      if ((a.flags & hal::kAttAttitudeValid) == 0) continue;
-      const std::uint64_t t = a.t_us > kInsLatencyCompUs ? a.t_us - kInsLatencyCompUs : 0;
-      const core::Quat<Scalar> q(static_cast<Scalar>(a.q_nb[0]), static_cast<Scalar>(a.q_nb[1]),
-                                 static_cast<Scalar>(a.q_nb[2]), static_cast<Scalar>(a.q_nb[3]));
-      const core::AttitudeInsert ins = g_attitude.insert(t, q);
-      if (ins == core::AttitudeInsert::kDuplicate || ins == core::AttitudeInsert::kTooOld ||
-          ins == core::AttitudeInsert::kInvalid)
-        ++st.att_rejected;
+      if (opt.core) g_pipeline.on_attitude(a, on_record);
     }
     const sim::SimSample& truth = g_rig.last();
     for (int guard = 0; guard < 8 && st.samples < opt.max_samples; ++guard) {
@@ -398,65 +470,20 @@ int app_main(const char* args) noexcept {
       if (rs == hal::Status::kTimeout || rs == hal::Status::kNoData) break;
       if (rs != hal::Status::kOk) {
         ++st.read_errors;
+        if (opt.core) g_pipeline.on_read_error();
         continue;
       }
       ++st.samples;
-      if ((s.flags & hal::kMagNotFresh) != 0) {
-        ++st.not_fresh;
-        continue;
-      }
+      if ((s.flags & hal::kMagNotFresh) != 0) ++st.not_fresh;
+      if ((s.flags & hal::kMagInvalidMask) != 0) ++st.device_errors;
       if (!opt.core) continue;
-      core::MagSample<Scalar> in;
-      in.t_us = s.t_us;
-      in.m_nT = core::Vec3<Scalar>(static_cast<Scalar>(s.m_nT[0]), static_cast<Scalar>(s.m_nT[1]),
-                                   static_cast<Scalar>(s.m_nT[2]));
-      in.f_ref_nT = static_cast<Scalar>(truth.f_nT);  // the scenario's scalar reference channel
-      in.device_error = (s.flags & hal::kMagInvalidMask) != 0;
-      if (in.device_error) ++st.device_errors;
-      const core::AttitudeQuery<Scalar> q = g_attitude.at(s.t_us);
-      core::Mat3<Scalar> r_bn;
-      const bool usable = core::attitude_usable(q.status);
-      if (usable) r_bn = core::r_bn_from_quat(q.q_nb);
-      const bool was_init = g_cal.filter().initialised();
-      const core::OutputRecord<Scalar> rec = g_loop.process(in, usable ? &r_bn : nullptr);
-
-      // Milestones and the end of the calibration.
-      if (!was_init && g_cal.filter().initialised() && ms.init_fit == 0) ms.init_fit = st.samples;
-      const core::CalState state = g_loop.state();
-      if (state != prev_state) {
-        if (prev_state == core::CalState::kSolving) ms.solve = st.samples;
-        if (state == core::CalState::kApplied) ms.applied = st.samples;
-        if (state == core::CalState::kFailed) {
-          w.str("MV cal_failed failure=").u(static_cast<std::uint64_t>(g_loop.failure()));
-          w.str(" code=").str(core::ekf_cal_code_name(g_loop.solver_code())).end();
-          rc = rc != 0 ? rc : 6;
-        }
-        prev_state = state;
-      }
-      if (state == core::CalState::kApplied && !stored) {
-        stored = true;
-        const int src = store_and_reload(w, blob_old);
-        if (src != 0) rc = rc != 0 ? rc : src;
-      }
-
-      if (opt.records && st.samples % kRecordEvery == 0) (void)sink.emit(to_hal(rec));
-      if (!opt.records || (rec.flags & core::kOutDropout) != 0) continue;
-      // Test statistics (not in quiet runs: they are not part of the per-sample firmware work).
-      const double res = static_cast<double>(rec.intensity_nT) - truth.f_nT;
-      if (rec.cal_id == 0) {
-        ++st.uncal_samples;
-        st.sum_sq_f_uncal += res * res;
-        continue;
-      }
-      ++st.cal_samples;
-      st.sum_sq_f_cal += res * res;
-      st.max_abs_f_cal = std::fmax(st.max_abs_f_cal, std::fabs(res));
-      if ((rec.flags & core::kOutNoAttitude) == 0) {
-        ++st.hn_samples;
-        st.sum_sq_hn_cal += (rec.h_n_nT.template cast<double>() - truth.h_n_true_nT).squaredNorm();
-      }
+      if (opt.records) truth_ring.put(s.t_us, truth.f_nT, truth.h_n_true_nT);
+      // The scenario's scalar reference channel rides with the sample.
+      g_pipeline.on_magnetometer(s, static_cast<Scalar>(truth.f_nT), on_record);
     }
   }
+  // End of the stream (or of n=<k>): every sample read gets its record.
+  if (opt.core) g_pipeline.flush(on_record);
 
   const auto& ekf = g_cal.filter();
   const core::EkfCounters& ec = ekf.counters();
@@ -473,8 +500,13 @@ int app_main(const char* args) noexcept {
   w.str(" applied=").u(ms.applied).end();
   w.str("MV counts samples=").u(st.samples).str(" read_errors=").u(st.read_errors);
   w.str(" not_fresh=").u(st.not_fresh).str(" device_errors=").u(st.device_errors);
-  w.str(" att=").u(st.att_samples).str(" att_rejected=").u(st.att_rejected);
-  w.str(" records=").u(sink.emitted()).str(" record_failures=").u(sink.failed()).end();
+  w.str(" att=").u(st.att_samples).str(" records=").u(sink.emitted());
+  w.str(" record_failures=").u(sink.failed()).end();
+  const pipeline::DeviceCounters& pc = g_pipeline.counters();
+  w.str("MV pipeline records=").u(pc.records).str(" att_rejected=").u(pc.att_rejected);
+  w.str(" att_gaps=").u(pc.att_gaps).str(" mag_missing=").u(pc.mag_missing);
+  w.str(" horizon_expired=").u(pc.horizon_expired).str(" extrapolated=").u(pc.extrapolated);
+  w.str(" max_queued=").u(pc.max_queued).str(" sink_errors=").u(pc.sink_errors).end();
   if (opt.core) {
     const core::SensorModel<Scalar> model = g_loop.active_model();
     report_model(w, "model", model);

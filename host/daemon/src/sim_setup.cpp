@@ -39,6 +39,7 @@ hil::HilConfig hil_config(const Config& c) {
   const CalibrationConfig& cc = c.calibration;
   hil::HilConfig hc;
   hc.loop.noise_nT = cc.noise_nT;
+  hc.loop.attitude_noise_deg = cc.attitude_noise_deg;
   hc.loop.validation_samples = cc.validation_samples;
   hc.loop.validation_max_rms_factor = cc.validation_max_rms_factor;
   hc.loop.validation_min_rms_nT = cc.validation_min_rms_nT;

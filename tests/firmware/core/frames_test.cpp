@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <random>
 
 namespace magvec::core {
@@ -82,6 +83,29 @@ TEST(Frames, WrapPi) {
   EXPECT_NEAR(wrap_pi(-kPi<double>), kPi<double>, 1e-12);
   EXPECT_NEAR(wrap_pi(0.5), 0.5, 1e-15);
   EXPECT_NEAR(wrap_pi(-7.0), -7.0 + 2 * kPi<double>, 1e-12);
+}
+
+TEST(Frames, RotationAngleBetweenIsAccurateFromZeroToPi) {
+  std::mt19937 rng(31);
+  std::normal_distribution<double> n(0, 1);
+  for (int i = 0; i < 300; ++i) {
+    Quat<double> q(n(rng), n(rng), n(rng), n(rng));
+    q.normalize();
+    const Mat3<double> a = r_bn_from_quat(q);
+    const Vec3<double> axis = Vec3<double>(n(rng), n(rng), n(rng)).normalized();
+    // Angles from 1e-9 rad (acos of the trace would give 0 or 2e-8 there) to just below pi.
+    const double angle = i < 100 ? std::pow(10.0, -9 + 0.08 * i) : 3.14159 * (i - 100) / 200.0;
+    const Mat3<double> b = a * Eigen::AngleAxis<double>(angle, axis).toRotationMatrix();
+    const double got = rotation_angle_between(a, b);
+    EXPECT_NEAR(got, angle, 1e-12 + 1e-9 * angle) << i;
+    EXPECT_NEAR(rotation_angle_between(b, a), got, 1e-12 + 1e-9 * angle);
+  }
+  EXPECT_EQ(
+      rotation_angle_between(Mat3<double>::Identity().eval(), Mat3<double>::Identity().eval()),
+      0.0);
+  const Mat3<float> af = Mat3<float>::Identity();
+  const Mat3<float> bf = Eigen::AngleAxis<float>(1e-4f, Vec3<float>::UnitZ()).toRotationMatrix();
+  EXPECT_NEAR(rotation_angle_between(af, bf), 1e-4f, 1e-8f);
 }
 
 TEST(Frames, FloatInstantiation) {

@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <random>
 
 #include "magvec/core/frames.hpp"
@@ -19,6 +20,7 @@ struct FakeCalibrator {
   std::uint32_t needed{100};
   std::uint32_t seen{0};
   bool refuse{false};
+  bool aligned{true};
   int begins{0};
   void begin() noexcept {
     seen = 0;
@@ -34,7 +36,7 @@ struct FakeCalibrator {
   CalibratorSolve solve(SensorModel<double>* out) noexcept {
     if (refuse) return {false, 7};
     *out = result;
-    return {true, 0};
+    return {true, 0, aligned};
   }
 };
 
@@ -300,6 +302,96 @@ TEST(SensorLoop, PerSamplePathDoesNotAllocate) {
   Eigen::internal::set_is_malloc_allowed(true);
   EXPECT_EQ(n, 0u);
   EXPECT_TRUE(std::isfinite(sum));
+}
+
+// Runs a calibration with the fake calibrator's result to its end (applied or failed).
+template <typename Loop>
+void run_to_end(Loop& loop, Feed& feed, int max_steps = 2000) {
+  Mat3<double> r;
+  loop.start_calibration();
+  for (int i = 0; i < max_steps; ++i) {
+    (void)loop.process(feed.next(truth_model(), &r), &r);
+    if (loop.state() == CalState::kApplied || loop.state() == CalState::kFailed) return;
+  }
+}
+
+// A candidate whose intensity is right but whose misalignment is 1 deg off passes the intensity
+// check; its E/N/U turn with the platform, which the vector check on the held-out samples sees.
+TEST(SensorLoop, VectorValidationRefusesAWrongMisalignment) {
+  FakeCalibrator cal;
+  SensorModel<double> wrong = truth_model();
+  wrong.rm = (wrong.rm * Quat<double>(Eigen::AngleAxis<double>(1.0 * kDeg, Vec3<double>::UnitX())))
+                 .normalized();
+  cal.result = wrong;
+  LoopConfig<double> cfg;
+  cfg.noise_nT = 0.3;
+  cfg.attitude_noise_deg = 0.01;  // the feed's attitudes are exact
+  SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+  Feed feed;
+  run_to_end(loop, feed);
+  EXPECT_EQ(loop.state(), CalState::kFailed);
+  EXPECT_EQ(loop.failure(), CalFailure::kVectorValidationFailed);
+  EXPECT_LT(loop.last_validation_rms_nT(), 1.0);           // the intensity was fine
+  EXPECT_GT(loop.last_validation_vector_rms_nT(), 300.0);  // ~1 deg of 54 uT over the attitudes
+
+  // The right one passes both, and its scatter is at the noise.
+  FakeCalibrator good;
+  good.result = truth_model();
+  SensorLoop<double, FakeCalibrator> loop2(good, cfg);
+  run_to_end(loop2, feed);
+  EXPECT_EQ(loop2.state(), CalState::kApplied);
+  EXPECT_LT(loop2.last_validation_vector_rms_nT(), 1.0);
+  EXPECT_TRUE(loop2.active_aligned());
+}
+
+// A calibrator that cannot see the misalignment: applied on its intensity, no vector check, and
+// every record says its h_n is not aligned to the INS.
+TEST(SensorLoop, UnalignedCalibrationIsFlaggedNotVectorValidated) {
+  FakeCalibrator cal;
+  SensorModel<double> unaligned = truth_model();
+  unaligned.rm = Quat<double>::Identity();
+  unaligned.w = truth_model().rm.toRotationMatrix() * unaligned.w;  // same |h|, a rotated W
+  cal.result = unaligned;
+  cal.aligned = false;
+  LoopConfig<double> cfg;
+  cfg.noise_nT = 0.3;
+  SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+  Feed feed;
+  Mat3<double> r;
+  EXPECT_NE(loop.process(feed.next(truth_model(), &r), &r).flags & kOutNotAligned, 0u);
+  run_to_end(loop, feed);
+  ASSERT_EQ(loop.state(), CalState::kApplied);
+  EXPECT_FALSE(loop.active_aligned());
+  EXPECT_TRUE(std::isnan(loop.last_validation_vector_rms_nT()));
+  const OutputRecord<double> rec = loop.process(feed.next(truth_model(), &r), &r);
+  EXPECT_NE(rec.flags & kOutNotAligned, 0u);
+  EXPECT_EQ(rec.flags & kOutUncalibrated, 0u);
+  // An installed calibration says whether it is aligned.
+  loop.set_active(truth_model(), 7, true);
+  EXPECT_EQ(loop.process(feed.next(truth_model(), &r), &r).flags & kOutNotAligned, 0u);
+}
+
+// sigma_F of the records: the configured noise until a calibration is applied, then the
+// held-out intensity RMS it achieved (never below the noise).
+TEST(SensorLoop, SigmaFComesFromTheValidation) {
+  FakeCalibrator cal;
+  SensorModel<double> off = truth_model();
+  off.o += Vec3<double>(0.6, -0.5, 0.4);  // 0.9 nT offset error: a held-out RMS above the noise
+  cal.result = off;
+  LoopConfig<double> cfg;
+  cfg.noise_nT = 0.3;
+  cfg.validation_min_rms_nT = 2.0;
+  SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+  Feed feed;
+  Mat3<double> r;
+  EXPECT_EQ(loop.process(feed.next(truth_model(), &r), &r).sigma_f_nT, 0.3);
+  run_to_end(loop, feed);
+  ASSERT_EQ(loop.state(), CalState::kApplied);
+  const double rms = loop.last_validation_rms_nT();
+  EXPECT_GT(rms, 0.45);
+  EXPECT_EQ(loop.process(feed.next(truth_model(), &r), &r).sigma_f_nT, rms);
+  loop.set_active(truth_model(), 9, true, 0.1);  // below the noise: the noise
+  EXPECT_EQ(loop.process(feed.next(truth_model(), &r), &r).sigma_f_nT, 0.3);
 }
 
 }  // namespace

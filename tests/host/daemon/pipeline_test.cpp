@@ -411,10 +411,13 @@ struct FakeIns final : hal::AttitudeSource {
   const hal::AttitudeCounters& counters() const noexcept override { return c; }
 };
 
-enum class InsDelivery { kLate, kEarly, kBursts };
+// kBursts: 5 epochs at once every 50 ms, in order; kBurstsReversed: the same, each burst in
+// reverse order (frames swapped in transit: reordering, not a clock jump).
+enum class InsDelivery { kLate, kEarly, kBursts, kBurstsReversed };
 
 struct FeedOutcome {
   std::size_t records{0}, interpolated{0}, extrapolated{0}, no_attitude{0};
+  std::uint64_t att_reordered{0}, att_time_jumps{0};
   double max_error_nT{0};
 };
 
@@ -431,12 +434,17 @@ FeedOutcome run_feed(InsDelivery mode, std::uint32_t horizon_us) {
     a.q_nb = {q.w(), q.x(), q.y(), q.z()};
     a.flags = hal::kAttAttitudeValid | hal::kAttHeadingValid;
     std::uint64_t at = a.t_us;  // late: received its latency after the epoch
-    if (mode == InsDelivery::kEarly) at = t > 30'000 ? t - 30'000 : 0;      // magnetometer lags
-    if (mode == InsDelivery::kBursts) at = (a.t_us / 50'000 + 1) * 50'000;  // 5 epochs at once
+    if (mode == InsDelivery::kEarly) at = t > 30'000 ? t - 30'000 : 0;  // magnetometer lags
+    if (mode == InsDelivery::kBursts || mode == InsDelivery::kBurstsReversed)
+      at = (a.t_us / 50'000 + 1) * 50'000;
     w.ins.push_back({at, a});
   }
-  std::sort(w.ins.begin(), w.ins.end(),
-            [](const FakeWorld::Arrival& x, const FakeWorld::Arrival& y) { return x.at < y.at; });
+  const bool reverse = mode == InsDelivery::kBurstsReversed;
+  std::stable_sort(w.ins.begin(), w.ins.end(),
+                   [reverse](const FakeWorld::Arrival& x, const FakeWorld::Arrival& y) {
+                     if (x.at != y.at) return x.at < y.at;
+                     return reverse && x.a.t_us > y.a.t_us;
+                   });
   for (int i = 0; i < kMagSamples; ++i) {
     const std::uint64_t t = kT0 + static_cast<std::uint64_t>(i) * kMagPeriodUs;
     hal::MagnetometerSample s;
@@ -469,6 +477,8 @@ FeedOutcome run_feed(InsDelivery mode, std::uint32_t horizon_us) {
   core.flush();
   FeedOutcome o;
   o.records = sink.records.size();
+  o.att_reordered = core.counters().att_reordered;
+  o.att_time_jumps = core.counters().att_time_jumps;
   for (const hal::OutputRecord& r : sink.records) {
     if ((r.flags & core::kOutNoAttitude) != 0) {
       ++o.no_attitude;
@@ -485,10 +495,12 @@ FeedOutcome run_feed(InsDelivery mode, std::uint32_t horizon_us) {
   return o;
 }
 
-// Burst delivery (5 epochs every 50 ms) is not asserted yet: 27 of its 2000 samples come out
-// without an attitude, not yet explained.
-TEST(DeviceFeed, InsLateOrEarlyIsInterpolated) {
-  for (const InsDelivery mode : {InsDelivery::kLate, InsDelivery::kEarly}) {
+// Bursts within the horizon (the last epoch of a burst arrives up to 65 ms after the sample it
+// brackets): every sample waits for it. Reversed bursts used to clear the attitude buffer as a
+// "clock jump" (27 of 2000 samples without attitude); they are reordering, counted as such.
+TEST(DeviceFeed, InsLateEarlyOrInBurstsIsInterpolated) {
+  for (const InsDelivery mode : {InsDelivery::kLate, InsDelivery::kEarly, InsDelivery::kBursts,
+                                 InsDelivery::kBurstsReversed}) {
     const FeedOutcome o = run_feed(mode, 100'000);
     SCOPED_TRACE(static_cast<int>(mode));
     EXPECT_EQ(o.records, 2000u);
@@ -496,6 +508,12 @@ TEST(DeviceFeed, InsLateOrEarlyIsInterpolated) {
     EXPECT_EQ(o.extrapolated, 0u);
     EXPECT_EQ(o.interpolated, 2000u);
     EXPECT_LT(o.max_error_nT, 1e-6);
+    EXPECT_EQ(o.att_time_jumps, 0u);
+    if (mode == InsDelivery::kBurstsReversed) {
+      EXPECT_GE(o.att_reordered, 800u);  // 4 of every 5 epochs arrive after a later one
+    } else {
+      EXPECT_EQ(o.att_reordered, 0u);
+    }
   }
 }
 

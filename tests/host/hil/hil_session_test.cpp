@@ -166,7 +166,9 @@ TEST(HilSession, ThreeMinutesWithFaultsThroughTheWholeChain) {
   EXPECT_LE(hc.mag_missing, adc.crc_corrupted);
   EXPECT_GE(hc.mag_missing + 1, adc.crc_corrupted);
   // Calibration in the loop: uncalibrated until the scripted solve validates, then cal_id 1.
-  EXPECT_EQ(hil.loop().state(), core::CalState::kApplied);
+  EXPECT_EQ(hil.loop().state(), core::CalState::kApplied)
+      << core::cal_failure_name(hil.loop().failure()) << ", validation rms "
+      << hil.loop().last_validation_rms_nT() << " nT";
   EXPECT_EQ(health.calibrations_applied, 1u);
   EXPECT_EQ(sink.records.front().cal_id, 0u);
   EXPECT_NE(sink.records.front().flags & core::kOutUncalibrated, 0u);

@@ -10,28 +10,10 @@
 #include <cstring>
 #include <span>
 
-#include "magvec/core/sensor_loop.hpp"
 #include "magvec/hal/record_sink.hpp"
 #include "magvec/hal/serial_port.hpp"
 
 namespace magvec::app {
-
-template <typename Scalar>
-hal::OutputRecord to_hal(const core::OutputRecord<Scalar>& r) noexcept {
-  hal::OutputRecord o;
-  o.t_us = r.t_us;
-  for (int i = 0; i < 3; ++i) {
-    const auto k = static_cast<std::size_t>(i);
-    o.raw_nT[k] = static_cast<double>(r.raw_nT(i));
-    o.h_s_nT[k] = static_cast<double>(r.h_s_nT(i));
-    o.h_n_nT[k] = static_cast<double>(r.h_n_nT(i));
-  }
-  o.f_nT = static_cast<double>(r.intensity_nT);
-  o.sigma_f_nT = static_cast<double>(r.sigma_f_nT);
-  o.flags = r.flags;
-  o.cal_id = r.cal_id;
-  return o;
-}
 
 class RecordLineSink final : public hal::RecordSink {
  public:

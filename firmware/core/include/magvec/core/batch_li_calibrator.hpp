@@ -30,6 +30,7 @@
 
 #include "magvec/core/batch_calibrator.hpp"
 #include "magvec/core/coverage.hpp"
+#include "magvec/core/frames.hpp"
 #include "magvec/core/sensor_loop.hpp"
 #include "magvec/core/types.hpp"
 
@@ -51,18 +52,6 @@ struct BatchLiCounts {
   std::uint64_t rejected{0};   // non-finite, no reference, no attitude (when needed)
   std::uint64_t full{0};       // store full
 };
-
-namespace batch_li_detail {
-
-// Rotation angle between two rotation matrices [rad], robust near 0.
-template <typename Scalar>
-Scalar rotation_angle(const Mat3<Scalar>& a, const Mat3<Scalar>& b) noexcept {
-  const Scalar c = std::clamp((Scalar(a.cwiseProduct(b).sum()) - Scalar(1)) * Scalar(0.5),
-                              Scalar(-1), Scalar(1));
-  return std::acos(c);
-}
-
-}  // namespace batch_li_detail
 
 template <typename Scalar, std::size_t Capacity>
 class BatchLiCalibrator {
@@ -108,7 +97,7 @@ class BatchLiCalibrator {
     if (have_last_) {
       const Scalar step =
           r_bn != nullptr && last_has_att_
-              ? batch_li_detail::rotation_angle(*r_bn, last_r_bn_)
+              ? rotation_angle_between(*r_bn, last_r_bn_)
               : std::acos(std::clamp(Scalar(dir.dot(last_dir_)), Scalar(-1), Scalar(1)));
       if (step < deg_to_rad(cfg_.min_step_deg)) {
         ++counts_.decimated;
@@ -151,7 +140,11 @@ class BatchLiCalibrator {
     solved_ = true;
     if (!result_.ok()) return CalibratorSolve{false, static_cast<std::uint8_t>(result_.verdict)};
     *out = result_.model;
-    return CalibratorSolve{true, 0};
+    CalibratorSolve r{true, 0, true};
+    r.attitude_noise_deg = static_cast<float>(result_.noise.estimated && result_.noise.has_attitude
+                                                  ? result_.noise.attitude_deg
+                                                  : cfg_.batch.attitude_noise_deg);
+    return r;
   }
 
   // --- diagnostics ------------------------------------------------------------------------------

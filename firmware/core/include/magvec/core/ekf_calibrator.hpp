@@ -29,6 +29,7 @@
 #include <cstdint>
 
 #include "magvec/core/batch_li_calibrator.hpp"
+#include "magvec/core/frames.hpp"
 #include "magvec/core/misalignment.hpp"
 #include "magvec/core/sample_store.hpp"
 #include "magvec/core/scalar_ekf.hpp"
@@ -169,7 +170,8 @@ class EkfCalibrator {
       aligned_ = true;
     }
     *out = model;
-    return CalibratorSolve{true, 0};
+    // Without the alignment step W is known only up to a rotation and Rm = I: not aligned.
+    return CalibratorSolve{true, 0, aligned_};
   }
 
   // --- diagnostics ------------------------------------------------------------------------------
@@ -193,7 +195,7 @@ class EkfCalibrator {
   void keep_for_alignment(const Vec3<Scalar>& m, Scalar f, const Mat3<Scalar>& r_bn) noexcept {
     if (store_.full() || !(std::isfinite(f) && f > 0)) return;
     if (have_last_ &&
-        batch_li_detail::rotation_angle(r_bn, last_r_bn_) < deg_to_rad(cfg_.align_min_step_deg)) {
+        rotation_angle_between(r_bn, last_r_bn_) < deg_to_rad(cfg_.align_min_step_deg)) {
       return;
     }
     if (store_.push(m, f, &r_bn)) {

@@ -15,7 +15,6 @@
 #pragma once
 
 #include <Eigen/Cholesky>
-#include <Eigen/Eigenvalues>
 #include <Eigen/LU>
 #include <cmath>
 #include <cstddef>
@@ -24,6 +23,7 @@
 
 #include "magvec/core/sample_store.hpp"
 #include "magvec/core/sensor_model.hpp"
+#include "magvec/core/symmetric_eigen.hpp"
 #include "magvec/core/types.hpp"
 
 namespace magvec::core {
@@ -73,11 +73,12 @@ Scalar scaled_rcond(const Mat<Scalar, N, N>& a, Vec<Scalar, N>* weakest = nullpt
     d(i) = a(i, i) > Scalar(0) ? Scalar(1) / std::sqrt(a(i, i)) : Scalar(0);
   }
   const Mat<Scalar, N, N> s = d.asDiagonal() * a * d.asDiagonal();
-  const Eigen::SelfAdjointEigenSolver<Mat<Scalar, N, N>> es(s);
-  if (es.info() != Eigen::Success) return Scalar(0);
-  const Scalar lmax = es.eigenvalues()(N - 1);
-  const Scalar lmin = es.eigenvalues()(0);
-  if (weakest != nullptr) *weakest = es.eigenvectors().col(0);
+  Vec<Scalar, N> evals;
+  Mat<Scalar, N, N> evecs;
+  if (!symmetric_eigen_jacobi<Scalar, N>(s, &evals, &evecs)) return Scalar(0);
+  const Scalar lmax = evals(N - 1);
+  const Scalar lmin = evals(0);
+  if (weakest != nullptr) *weakest = evecs.col(0);
   if (!(lmax > Scalar(0))) return Scalar(0);
   return lmin > Scalar(0) ? lmin / lmax : Scalar(0);
 }
@@ -163,12 +164,13 @@ class EllipsoidFit {
     const Accumulator s = s_.template selfadjointView<Eigen::Upper>();
     // (1) Homogeneous quadric: smallest eigenvector of the 10x10 scatter block.
     const Mat<Scalar, kCoeffs, kCoeffs> m = s.template topLeftCorner<kCoeffs, kCoeffs>();
-    const Eigen::SelfAdjointEigenSolver<Mat<Scalar, kCoeffs, kCoeffs>> es(m);
-    if (es.info() != Eigen::Success) {
+    Vec<Scalar, kCoeffs> evals;
+    Mat<Scalar, kCoeffs, kCoeffs> evecs;
+    if (!symmetric_eigen_jacobi<Scalar, kCoeffs>(m, &evals, &evecs)) {
       out.status = EllipsoidStatus::kIllConditioned;
       return out;
     }
-    Vec<Scalar, kCoeffs> q = es.eigenvectors().col(0);
+    Vec<Scalar, kCoeffs> q = evecs.col(0);
     Mat3<Scalar> g = detail::sym_from6<Scalar>(q.template head<6>());
     if (g.trace() < Scalar(0)) {
       q = -q;

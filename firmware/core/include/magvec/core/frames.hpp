@@ -116,10 +116,19 @@ Scalar wrap_pi(Scalar a) noexcept {
   return a;
 }
 
-// Angle of the rotation r_a^T r_b in radians: the distance between two attitudes.
+// Angle of the rotation R = r_a^T r_b in radians: the distance between two attitudes (the one
+// implementation: motion decimation of the calibrators, tests, evaluation). atan2 of
+// sin = |vee(R - R^T)| / 2 and cos = (tr R - 1) / 2 is accurate at 0 and at pi alike, where
+// acos of the trace alone loses half the digits near 0; 27 multiplications, no matrix product.
 template <typename Scalar>
 Scalar rotation_angle_between(const Mat3<Scalar>& r_a, const Mat3<Scalar>& r_b) noexcept {
-  return Eigen::AngleAxis<Scalar>(Mat3<Scalar>(r_a.transpose() * r_b)).angle();
+  const Scalar c = (r_a.cwiseProduct(r_b).sum() - Scalar(1)) * Scalar(0.5);
+  // R(i, j) = r_a.col(i) . r_b.col(j)
+  const Scalar sx = r_a.col(2).dot(r_b.col(1)) - r_a.col(1).dot(r_b.col(2));
+  const Scalar sy = r_a.col(0).dot(r_b.col(2)) - r_a.col(2).dot(r_b.col(0));
+  const Scalar sz = r_a.col(1).dot(r_b.col(0)) - r_a.col(0).dot(r_b.col(1));
+  const Scalar s = Scalar(0.5) * std::sqrt(sx * sx + sy * sy + sz * sz);
+  return std::atan2(s, c);
 }
 
 }  // namespace magvec::core

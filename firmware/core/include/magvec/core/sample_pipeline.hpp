@@ -20,8 +20,10 @@
 // INS time of the attitude it belongs to; positive when the magnetometer lags).
 //
 // One set of rules for time jumps, reordering and dropouts:
-//   - INS time going backwards: a clock jump; the buffer is cleared (it must not mix time bases)
-//     and counted (att_time_jumps). INS spacing above 1.5 periods is counted as a gap (att_gaps).
+//   - INS time going backwards by more than the buffer's max_gap_us: a clock jump; the buffer is
+//     cleared (it must not mix time bases) and counted (att_time_jumps). Less than that:
+//     reordering in transit (att_reordered); the buffer inserts the sample in time order. INS
+//     spacing above 1.5 periods is counted as a gap (att_gaps).
 //     An INS sample without attitude validity is not inserted (att_invalid) but still tells the
 //     queue how far the INS has got. Inserts the buffer refuses are att_rejected.
 //   - Magnetometer time going backwards: a clock jump (mag_time_jumps); the queue is flushed first
@@ -51,8 +53,10 @@ struct PipelineConfig {
   std::uint32_t ins_latency_us{500};  // subtracted from INS receive times
   std::int64_t time_offset_us{0};     // magnetometer stamp - INS time of its attitude
   std::uint32_t horizon_us{50'000};   // longest wait for bracketing INS samples
-  double mag_period_us{5'000};        // expected cadences (missing/gap/jump counters)
-  double ins_period_us{10'000};
+  // Expected cadences (missing/gap/jump counters), whole microseconds: integer arithmetic keeps
+  // soft-float double off the M4F's per-sample path.
+  std::uint32_t mag_period_us{5'000};
+  std::uint32_t ins_period_us{10'000};
 };
 
 struct PipelineCounters {
@@ -64,6 +68,7 @@ struct PipelineCounters {
   std::uint64_t att_invalid{0};
   std::uint64_t att_gaps{0};
   std::uint64_t att_time_jumps{0};
+  std::uint64_t att_reordered{0};
   std::uint64_t att_rejected{0};
   std::uint64_t records{0};
   std::uint64_t horizon_expired{0};  // processed without a bracketing INS sample
@@ -91,16 +96,22 @@ class SamplePipeline {
                    Emit&& emit) noexcept {
     ++counters_.att_samples;
     const std::uint64_t t = t_rx_us > config_.ins_latency_us ? t_rx_us - config_.ins_latency_us : 0;
-    if (have_ins_) {
-      if (t < ins_seen_us_) {
-        ++counters_.att_time_jumps;
-        buffer_.clear();
-      } else if (static_cast<double>(t - ins_seen_us_) > 1.5 * config_.ins_period_us) {
-        ++counters_.att_gaps;
-      }
+    if (!have_ins_) {
+      ins_seen_us_ = t;
+    } else if (t < ins_seen_us_ && ins_seen_us_ - t > config_.buffer.max_gap_us) {
+      // A clock jump: the buffer must not mix time bases.
+      ++counters_.att_time_jumps;
+      buffer_.clear();
+      ins_seen_us_ = t;
+    } else if (t < ins_seen_us_) {
+      // Reordered by less than the longest interpolation gap (frames of one burst swapped in
+      // transit): the buffer inserts it in time order; the INS has still got as far as before.
+      ++counters_.att_reordered;
+    } else {
+      if (2 * (t - ins_seen_us_) > 3 * std::uint64_t{config_.ins_period_us}) ++counters_.att_gaps;
+      ins_seen_us_ = t;
     }
     have_ins_ = true;
-    ins_seen_us_ = t;
     if (!valid) {
       ++counters_.att_invalid;
     } else {
@@ -119,12 +130,13 @@ class SamplePipeline {
   void on_magnetometer(const MagSample<Scalar>& s, bool not_fresh, Emit&& emit) noexcept {
     ++counters_.mag_samples;
     if (have_mag_) {
-      const double ratio = (static_cast<double>(s.t_us) - static_cast<double>(mag_newest_us_)) /
-                           config_.mag_period_us;
-      if (ratio < 0.5 || ratio > 10.0) {
+      // Step of k periods: < 0.5 or > 10 is a jump; 1.5 < k <= 10 means round(k) - 1 missing.
+      const std::uint64_t p = config_.mag_period_us > 0 ? config_.mag_period_us : 1;
+      if (s.t_us < mag_newest_us_ || 2 * (s.t_us - mag_newest_us_) < p ||
+          s.t_us - mag_newest_us_ > 10 * p) {
         ++counters_.mag_time_jumps;
-      } else if (ratio > 1.5) {
-        counters_.mag_missing += static_cast<std::uint64_t>(std::llround(ratio)) - 1;
+      } else if (2 * (s.t_us - mag_newest_us_) > 3 * p) {
+        counters_.mag_missing += (s.t_us - mag_newest_us_ + p / 2) / p - 1;
       }
       // The pending samples belong to the old time base: out before the new one goes in.
       if (s.t_us <= mag_newest_us_) flush(emit);

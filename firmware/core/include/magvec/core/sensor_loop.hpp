@@ -46,6 +46,10 @@ enum OutputFlag : std::uint32_t {
   // The attitude was extrapolated past the newest INS sample (the fusion horizon expired before
   // INS samples bracketed the sample's time; SamplePipeline).
   kOutAttExtrapolated = 1u << 6,
+  // The active calibration does not align the sensor to the INS (no calibration yet, or one from
+  // a calibrator that cannot see the misalignment, e.g. the scalar EKF without its alignment
+  // step): h_n is the field rotated with Rm = I, not an E/N/U estimate; |h| is unaffected.
+  kOutNotAligned = 1u << 7,
 };
 
 enum class CalState : std::uint8_t { kIdle, kCollecting, kSolving, kValidating, kApplied, kFailed };
@@ -73,6 +77,7 @@ enum class CalFailure : std::uint8_t {
   kSolverRejected,    // the calibrator refused (see solver_code)
   kValidationFailed,  // held-out residuals not better than the active calibration / above bound
   kNoReference,       // validation needs a scalar reference and none arrived
+  kVectorValidationFailed,  // held-out E/N/U scatter above the attitude-noise floor: Rm is wrong
 };
 
 constexpr const char* cal_failure_name(CalFailure f) noexcept {
@@ -85,6 +90,8 @@ constexpr const char* cal_failure_name(CalFailure f) noexcept {
       return "validation_failed";
     case CalFailure::kNoReference:
       return "no_reference";
+    case CalFailure::kVectorValidationFailed:
+      return "vector_validation_failed";
   }
   return "unknown";
 }
@@ -94,6 +101,10 @@ enum class CalibratorAdd : std::uint8_t { kUsed, kGated, kRejected };
 struct CalibratorSolve {
   bool ok{false};
   std::uint8_t code{0};  // calibrator-specific verdict code when !ok
+  bool aligned{true};    // the model's Rm estimates the misalignment to the INS
+  // The INS attitude noise 1-sigma the solve used or estimated (NaN: the loop's configured one);
+  // sets the floor of the held-out vector check.
+  float attitude_noise_deg{std::numeric_limits<float>::quiet_NaN()};
 };
 
 template <typename Scalar>
@@ -136,6 +147,13 @@ struct LoopConfig {
   Scalar validation_min_rms_nT{1};      // ... or <= this floor
   bool validate_against_active{
       true};  // and not worse than the active calibration on the same samples
+  // Vector check of an aligned candidate on the held-out samples with attitude: the scatter of
+  // its E/N/U field about their mean must be within factor * sqrt(noise^2 + (F sigma_att)^2)
+  // (a wrong Rm turns with the platform; the true field does not). sigma_att: INS attitude
+  // noise 1-sigma (the solve's figure when it gives one, CalibratorSolve); F: the mean held-out
+  // intensity.
+  Scalar attitude_noise_deg{Scalar(0.05)};
+  Scalar validation_max_vector_rms_factor{3};
   // The owner runs the calibrator's solve and hands the result to install_solve() (see the top).
   bool external_solve{false};
 };
@@ -149,11 +167,21 @@ class SensorLoop {
   // Installs a calibration (e.g. loaded from the ParamStore) as the active one. The next applied
   // calibration gets an id above every id seen so far, so reverting to an older calibration never
   // lets a later, different one reuse an id that records already carry.
-  void set_active(const SensorModel<Scalar>& model, std::uint32_t cal_id) noexcept {
+  // aligned: the model's Rm is an estimate (records are flagged kOutNotAligned otherwise);
+  // sigma_f_nT: the 1-sigma of |h| the calibration achieved (NaN: the configured noise).
+  void set_active(const SensorModel<Scalar>& model, std::uint32_t cal_id, bool aligned = true,
+                  Scalar sigma_f_nT = std::numeric_limits<Scalar>::quiet_NaN()) noexcept {
     active_.set_model(model);
     cal_id_ = cal_id;
     if (cal_id > max_cal_id_) max_cal_id_ = cal_id;
+    active_aligned_ = aligned;
+    active_sigma_f_ =
+        std::isfinite(sigma_f_nT) ? std::fmax(sigma_f_nT, config_.noise_nT) : config_.noise_nT;
   }
+  bool active_aligned() const noexcept { return active_aligned_ && cal_id_ != 0; }
+  // The 1-sigma of |h| in the records: the held-out intensity RMS of the applied calibration
+  // against the scalar reference (noise and calibration error together), never below the noise.
+  Scalar active_sigma_f_nT() const noexcept { return active_sigma_f_; }
   const SensorModel<Scalar>& active_model() const noexcept { return active_.model(); }
   std::uint32_t cal_id() const noexcept { return cal_id_; }
 
@@ -174,6 +202,9 @@ class SensorLoop {
   // The candidate of the last solve (valid in kValidating, kApplied, and kFailed after validation).
   const SensorModel<Scalar>& candidate() const noexcept { return candidate_.model(); }
   Scalar last_validation_rms_nT() const noexcept { return last_validation_rms_; }
+  // E/N/U scatter of the last validated candidate (NaN: not checked: not aligned, or too few
+  // held-out samples with attitude).
+  Scalar last_validation_vector_rms_nT() const noexcept { return last_vector_rms_; }
 
   // Increments each time the loop enters kSolving (with external_solve: a solve is wanted; the
   // calibrator's data stay frozen while the state is kSolving).
@@ -197,6 +228,7 @@ class SensorLoop {
     rec.cal_id = cal_id_;
     ++health_.samples;
     if (cal_id_ == 0) rec.flags |= kOutUncalibrated;
+    if (cal_id_ == 0 || !active_aligned_) rec.flags |= kOutNotAligned;
     if (state_ == CalState::kCollecting || state_ == CalState::kSolving ||
         state_ == CalState::kValidating) {
       rec.flags |= kOutCalibrating;
@@ -213,7 +245,7 @@ class SensorLoop {
     }
     rec.h_s_nT = c.h_s;
     rec.intensity_nT = c.intensity;
-    rec.sigma_f_nT = config_.noise_nT;
+    rec.sigma_f_nT = active_sigma_f_;
     if (r_bn != nullptr) {
       rec.h_n_nT = Compensator<Scalar>::to_nav(c.h_b, *r_bn);
     } else {
@@ -252,7 +284,7 @@ class SensorLoop {
         break;
       }
       case CalState::kValidating:
-        validate(s);
+        validate(s, r_bn);
         break;
       case CalState::kIdle:
       case CalState::kApplied:
@@ -267,14 +299,22 @@ class SensorLoop {
       return;
     }
     candidate_.set_model(model);
+    candidate_aligned_ = r.aligned;
+    candidate_att_noise_deg_ = std::isfinite(r.attitude_noise_deg)
+                                   ? static_cast<Scalar>(r.attitude_noise_deg)
+                                   : config_.attitude_noise_deg;
     validation_count_ = 0;
     sum_sq_candidate_ = 0;
     missing_reference_ = 0;
     sum_sq_active_ = 0;
+    sum_f_ = 0;
+    vector_count_ = 0;
+    vector_sum_.setZero();
+    vector_sum_sq_.setZero();
     state_ = CalState::kValidating;
   }
 
-  void validate(const MagSample<Scalar>& s) noexcept {
+  void validate(const MagSample<Scalar>& s, const Mat3<Scalar>* r_bn) noexcept {
     if (!std::isfinite(s.f_ref_nT)) {
       ++missing_reference_;
       if (missing_reference_ > config_.validation_samples) fail(CalFailure::kNoReference, 0);
@@ -287,6 +327,16 @@ class SensorLoop {
     const Scalar ra = act.intensity - s.f_ref_nT;
     sum_sq_candidate_ += rc * rc;
     sum_sq_active_ += ra * ra;
+    sum_f_ += s.f_ref_nT;
+    if (candidate_aligned_ && r_bn != nullptr) {
+      // About the first vector (shifted sums: no cancellation of 50 000 nT squares in float).
+      const Vec3<Scalar> h = Compensator<Scalar>::to_nav(cand.h_b, *r_bn);
+      if (vector_count_ == 0) vector_ref_ = h;
+      const Vec3<Scalar> d = h - vector_ref_;
+      vector_sum_ += d;
+      vector_sum_sq_ += d.cwiseProduct(d);
+      ++vector_count_;
+    }
     if (++validation_count_ < config_.validation_samples) return;
     const Scalar n = static_cast<Scalar>(validation_count_);
     const Scalar rms_c = std::sqrt(sum_sq_candidate_ / n);
@@ -295,14 +345,32 @@ class SensorLoop {
     const Scalar bound = std::fmax(config_.validation_max_rms_factor * config_.noise_nT,
                                    config_.validation_min_rms_nT);
     const bool better = cal_id_ == 0 || !config_.validate_against_active || rms_c <= rms_a;
-    if (rms_c <= bound && better) {
-      active_ = candidate_;
-      cal_id_ = ++max_cal_id_;
-      ++health_.calibrations_applied;
-      state_ = CalState::kApplied;
-    } else {
+    if (rms_c > bound || !better) {
       fail(CalFailure::kValidationFailed, 0);
+      return;
     }
+    last_vector_rms_ = std::numeric_limits<Scalar>::quiet_NaN();
+    if (2 * vector_count_ >= validation_count_ && vector_count_ >= 2) {
+      const Scalar m = static_cast<Scalar>(vector_count_);
+      const Vec3<Scalar> mean = vector_sum_ / m;
+      const Scalar var = ((vector_sum_sq_ / m) - mean.cwiseProduct(mean)).sum() / Scalar(3);
+      last_vector_rms_ = std::sqrt(std::fmax(var, Scalar(0)));
+      const Scalar f = sum_f_ / n;
+      const Scalar att = deg_to_rad(candidate_att_noise_deg_) * f;
+      const Scalar floor = std::sqrt(config_.noise_nT * config_.noise_nT + att * att);
+      const Scalar vector_bound = std::fmax(config_.validation_max_vector_rms_factor * floor,
+                                            config_.validation_min_rms_nT);
+      if (last_vector_rms_ > vector_bound) {
+        fail(CalFailure::kVectorValidationFailed, 0);
+        return;
+      }
+    }
+    active_ = candidate_;
+    active_aligned_ = candidate_aligned_;
+    active_sigma_f_ = std::fmax(rms_c, config_.noise_nT);
+    cal_id_ = ++max_cal_id_;
+    ++health_.calibrations_applied;
+    state_ = CalState::kApplied;
   }
 
   void fail(CalFailure why, std::uint8_t code) noexcept {
@@ -327,6 +395,16 @@ class SensorLoop {
   Scalar sum_sq_candidate_{0};
   Scalar sum_sq_active_{0};
   Scalar last_validation_rms_{0};
+  Scalar last_vector_rms_{std::numeric_limits<Scalar>::quiet_NaN()};
+  bool active_aligned_{false};
+  bool candidate_aligned_{false};
+  Scalar candidate_att_noise_deg_{0};
+  Scalar active_sigma_f_{config_.noise_nT};
+  Scalar sum_f_{0};
+  std::uint32_t vector_count_{0};
+  Vec3<Scalar> vector_ref_ = Vec3<Scalar>::Zero();
+  Vec3<Scalar> vector_sum_ = Vec3<Scalar>::Zero();
+  Vec3<Scalar> vector_sum_sq_ = Vec3<Scalar>::Zero();
   LoopHealth health_{};
 };
 

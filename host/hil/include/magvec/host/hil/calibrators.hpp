@@ -1,0 +1,66 @@
+// The host's calibrators in the sample pipeline, chosen by name: the one place that maps a
+// calibrator mode and the noise figures to a calibrator type and its configuration, for
+// `magvec run`, `magvec demo` and magvecd (the MCU image constructs its EkfCalibrator statically).
+//   li    core::BatchLiCalibrator: motion-decimated store, Li et al. one-step fit
+//         (docs/equations.md E-Li);
+//   ekf   core::EkfCalibrator: Ge et al. scalar EKF + misalignment fit (docs/equations.md E-Ge);
+//   none  NullCalibrator: outputs with the active calibration, never calibrates.
+#pragma once
+
+#include <cstddef>
+#include <memory>
+#include <stdexcept>
+#include <string>
+#include <type_traits>
+
+#include "magvec/core/batch_li_calibrator.hpp"
+#include "magvec/core/ekf_calibrator.hpp"
+#include "magvec/host/hil/loop_core.hpp"
+
+namespace magvec::host::hil {
+
+using LiCalibrator = core::BatchLiCalibrator<double, 512>;
+using EkfLoopCalibrator = core::EkfCalibrator<double, 256>;
+
+struct CalibratorSpec {
+  std::string mode{"li"};           // li | ekf | none
+  double noise_nT{1.0};             // magnetometer noise 1-sigma the calibrator weights with
+  double attitude_noise_deg{0.01};  // INS attitude noise 1-sigma (li)
+  std::size_t li_min_samples{0};    // li: samples before a solve (0: the calibrator's default)
+  bool ekf_align{true};             // ekf: fit the misalignment after the filter
+};
+
+inline bool is_calibrator_mode(const std::string& mode) {
+  return mode == "li" || mode == "ekf" || mode == "none";
+}
+
+// True for calibrators that calibrate (HilConfig::start_calibration).
+template <typename Calibrator>
+inline constexpr bool kCalibrates = !std::is_same_v<Calibrator, NullCalibrator>;
+
+inline core::BatchLiCalibratorConfig<double> li_config(const CalibratorSpec& spec) {
+  core::BatchLiCalibratorConfig<double> lc;
+  lc.batch.mag_noise_nT = spec.noise_nT;
+  lc.batch.attitude_noise_deg = spec.attitude_noise_deg;
+  if (spec.li_min_samples > 0) lc.min_samples = spec.li_min_samples;
+  return lc;
+}
+
+inline core::EkfCalibratorConfig<double> ekf_config(const CalibratorSpec& spec) {
+  core::EkfCalibratorConfig<double> ec;
+  ec.ekf.noise_sigma_nT = spec.noise_nT;
+  ec.align = spec.ekf_align;
+  return ec;
+}
+
+// Constructs the calibrator of spec.mode and returns fn(std::unique_ptr<Calibrator>) (fn is a
+// generic callable; every branch must return the same type). Unknown mode: std::invalid_argument.
+template <typename Fn>
+auto with_calibrator(const CalibratorSpec& spec, Fn&& fn) {
+  if (spec.mode == "li") return fn(std::make_unique<LiCalibrator>(li_config(spec)));
+  if (spec.mode == "ekf") return fn(std::make_unique<EkfLoopCalibrator>(ekf_config(spec)));
+  if (spec.mode == "none") return fn(std::make_unique<NullCalibrator>());
+  throw std::invalid_argument("unknown calibrator '" + spec.mode + "' (li, ekf or none)");
+}
+
+}  // namespace magvec::host::hil

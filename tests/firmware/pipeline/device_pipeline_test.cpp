@@ -1,0 +1,220 @@
+// DevicePipeline (firmware/pipeline/.../device_pipeline.hpp): HAL samples in, one record per
+// magnetometer sample out, with the HAL record's NaN conventions, failed reads and sink refusals
+// counted, float and double alike, no heap per event. The timing rules themselves are the core's
+// SamplePipeline; here they are exercised through HAL samples as a driver delivers them.
+#include "magvec/pipeline/device_pipeline.hpp"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+#include "support/alloc_counter.hpp"
+
+namespace magvec {
+namespace {
+
+// A calibrator that never calibrates: the loop outputs with the active (identity) model.
+template <typename Scalar>
+struct IdleCalibrator {
+  void begin() noexcept {}
+  core::CalibratorAdd add(const core::Vec3<Scalar>&, Scalar, const core::Mat3<Scalar>*) noexcept {
+    return core::CalibratorAdd::kRejected;
+  }
+  Scalar progress() const noexcept { return 0; }
+  bool ready() const noexcept { return false; }
+  core::CalibratorSolve solve(core::SensorModel<Scalar>*) noexcept { return {false, 1}; }
+};
+
+constexpr std::uint32_t kLatencyUs = 15'000;
+const core::Vec3<double> kField(-4053.0, 25022.0, -47374.0);
+
+core::Quat<double> attitude_at(std::uint64_t t_us) {
+  const double angle = 0.5 * 1e-6 * static_cast<double>(t_us);  // 29 deg/s about a fixed axis
+  return core::Quat<double>(
+      Eigen::AngleAxis<double>(angle, core::Vec3<double>(0.3, -0.4, 0.866).normalized()));
+}
+
+hal::AttitudeSample ins_sample(std::uint64_t epoch_us) {
+  hal::AttitudeSample a;
+  const core::Quat<double> q = attitude_at(epoch_us);
+  a.t_us = epoch_us + kLatencyUs;  // CAN receive time
+  a.q_nb = {q.w(), q.x(), q.y(), q.z()};
+  a.flags = hal::kAttAttitudeValid | hal::kAttHeadingValid;
+  return a;
+}
+
+hal::MagnetometerSample mag_sample(std::uint64_t t_us) {
+  hal::MagnetometerSample s;
+  s.t_us = t_us;
+  const core::Vec3<double> m = core::r_bn_from_quat(attitude_at(t_us)) * kField;
+  s.m_nT = {m(0), m(1), m(2)};
+  return s;
+}
+
+template <typename Scalar>
+core::PipelineConfig<Scalar> config() {
+  core::PipelineConfig<Scalar> c;
+  c.ins_latency_us = kLatencyUs;
+  c.horizon_us = 100'000;
+  c.mag_period_us = 5'000;
+  c.ins_period_us = 10'000;
+  return c;
+}
+
+template <typename Scalar>
+using Pipe = pipeline::DevicePipeline<Scalar, IdleCalibrator<Scalar>, 64, 64>;
+
+// 200 Hz magnetometer, 100 Hz INS received kLatencyUs after its epoch, fed in arrival order.
+template <typename Scalar, typename Emit>
+void feed_stream(Pipe<Scalar>& p, int samples, Emit&& emit) {
+  std::uint64_t next_ins = 0;
+  for (int i = 0; i < samples; ++i) {
+    const std::uint64_t t = 100'000 + 5'000 * static_cast<std::uint64_t>(i);
+    while (next_ins + kLatencyUs <= t) {
+      p.on_attitude(ins_sample(next_ins), emit);
+      next_ins += 10'000;
+    }
+    p.on_magnetometer(mag_sample(t), static_cast<Scalar>(kField.norm()), emit);
+  }
+  for (int k = 0; k < 20; ++k, next_ins += 10'000)
+    p.on_attitude(ins_sample(next_ins), emit);
+  p.flush(emit);
+}
+
+TEST(DevicePipeline, LateInsFramesAreWaitedForAndInterpolated) {
+  IdleCalibrator<double> cal;
+  Pipe<double> p(cal, config<double>());
+  std::vector<hal::OutputRecord> out;
+  feed_stream(p, 400, [&](const core::OutputRecord<double>& r) {
+    out.push_back(pipeline::to_hal_record(r));
+  });
+  ASSERT_EQ(out.size(), 400u);
+  for (std::size_t i = 0; i < out.size(); ++i) {
+    const hal::OutputRecord& r = out[i];
+    EXPECT_EQ(r.t_us, 100'000 + 5'000 * i);  // in sample order
+    ASSERT_EQ(r.flags & (core::kOutNoAttitude | core::kOutAttExtrapolated), 0u) << i;
+    const core::Vec3<double> h(r.h_n_nT[0], r.h_n_nT[1], r.h_n_nT[2]);
+    EXPECT_LT((h - kField).norm(), 1e-6);  // slerp is exact for a fixed-axis rotation
+  }
+  EXPECT_EQ(p.counters().records, 400u);
+  EXPECT_EQ(p.counters().horizon_expired, 0u);
+  EXPECT_EQ(p.counters().mag_missing, 0u);
+  EXPECT_EQ(p.counters().att_gaps, 0u);
+}
+
+TEST(DevicePipeline, FloatFollowsDouble) {
+  IdleCalibrator<float> calf;
+  IdleCalibrator<double> cald;
+  Pipe<float> pf(calf, config<float>());
+  Pipe<double> pd(cald, config<double>());
+  std::vector<hal::OutputRecord> of, od;
+  feed_stream(pf, 200, [&](const core::OutputRecord<float>& r) {
+    of.push_back(pipeline::to_hal_record(r));
+  });
+  feed_stream(pd, 200, [&](const core::OutputRecord<double>& r) {
+    od.push_back(pipeline::to_hal_record(r));
+  });
+  ASSERT_EQ(of.size(), od.size());
+  for (std::size_t i = 0; i < of.size(); ++i) {
+    EXPECT_EQ(of[i].t_us, od[i].t_us);
+    EXPECT_EQ(of[i].flags, od[i].flags);
+    for (std::size_t k = 0; k < 3; ++k)
+      EXPECT_NEAR(of[i].h_n_nT[k], od[i].h_n_nT[k], 0.05);  // float: ~1e-6 of 54 uT
+  }
+}
+
+TEST(DevicePipeline, HalRecordsCarryNaNForValuesTheyDoNotHave) {
+  IdleCalibrator<double> cal;
+  Pipe<double> p(cal, config<double>());
+  std::vector<hal::OutputRecord> out;
+  auto emit = [&](const core::OutputRecord<double>& r) {
+    out.push_back(pipeline::to_hal_record(r));
+  };
+  // No INS at all: records without attitude once the horizon expires.
+  p.on_magnetometer(mag_sample(100'000), 50'000.0, emit);
+  hal::MagnetometerSample stale = mag_sample(105'000);
+  stale.flags = hal::kMagNotFresh;
+  p.on_magnetometer(stale, 50'000.0, emit);
+  hal::MagnetometerSample saturated = mag_sample(110'000);
+  saturated.flags = hal::kMagSaturated;
+  p.on_magnetometer(saturated, 50'000.0, emit);
+  p.on_read_error();
+  p.flush(emit);
+  ASSERT_EQ(out.size(), 3u);
+  // Sample without attitude: h_s and F exist, h_n does not.
+  EXPECT_NE(out[0].flags & core::kOutNoAttitude, 0u);
+  EXPECT_TRUE(std::isfinite(out[0].f_nT));
+  EXPECT_TRUE(std::isfinite(out[0].h_s_nT[0]));
+  EXPECT_TRUE(std::isnan(out[0].h_n_nT[0]));
+  // Not fresh: a dropout, no output value at all.
+  EXPECT_NE(out[1].flags & core::kOutDropout, 0u);
+  EXPECT_EQ(out[1].flags & core::kOutDeviceError, 0u);
+  EXPECT_TRUE(std::isnan(out[1].f_nT));
+  EXPECT_TRUE(std::isnan(out[1].sigma_f_nT));
+  EXPECT_TRUE(std::isnan(out[1].h_s_nT[2]));
+  EXPECT_TRUE(std::isnan(out[1].h_n_nT[1]));
+  // Saturated: passed on as a device error.
+  EXPECT_NE(out[2].flags & core::kOutDeviceError, 0u);
+  const pipeline::DeviceCounters& c = p.counters();
+  EXPECT_EQ(c.mag_samples, 3u);
+  EXPECT_EQ(c.mag_not_fresh, 1u);
+  EXPECT_EQ(c.mag_read_errors, 1u);
+  EXPECT_EQ(c.records, 3u);
+}
+
+struct RefusingSink final : hal::RecordSink {
+  std::uint32_t calls{0};
+  hal::Status emit(const hal::OutputRecord&) noexcept override {
+    ++calls;
+    return calls % 2 == 0 ? hal::Status::kBusError : hal::Status::kOk;
+  }
+};
+
+TEST(DevicePipeline, SinkRefusalsAreCounted) {
+  IdleCalibrator<double> cal;
+  Pipe<double> p(cal, config<double>());
+  RefusingSink sink;
+  feed_stream(p, 10, p.emit_to(sink));
+  EXPECT_EQ(sink.calls, 10u);
+  EXPECT_EQ(p.counters().sink_errors, 5u);
+}
+
+// INS frames swapped in transit are reordering; a step back beyond the longest interpolation gap
+// is a clock jump that restarts the attitude buffer.
+TEST(DevicePipeline, InsReorderingIsNotAClockJump) {
+  IdleCalibrator<double> cal;
+  Pipe<double> p(cal, config<double>());
+  auto none = [](const core::OutputRecord<double>&) {};
+  p.on_attitude(ins_sample(0), none);
+  p.on_attitude(ins_sample(20'000), none);
+  p.on_attitude(ins_sample(10'000), none);  // 10 ms back: reordered
+  EXPECT_EQ(p.counters().att_reordered, 1u);
+  EXPECT_EQ(p.counters().att_time_jumps, 0u);
+  EXPECT_EQ(p.core().buffer().size(), 3u);
+  p.on_attitude(ins_sample(30'000), none);
+  EXPECT_EQ(p.counters().att_gaps, 1u);  // 0 -> 20 ms was a gap when it arrived
+  p.on_attitude(ins_sample(0), none);  // 30 ms back: still within the 50 ms gap, reordered
+  EXPECT_EQ(p.counters().att_reordered, 2u);
+  EXPECT_EQ(p.counters().att_rejected, 1u);  // a duplicate of the first epoch
+  // 200 ms back: a new time base.
+  p.on_attitude(ins_sample(1'000'000), none);
+  p.on_attitude(ins_sample(800'000), none);
+  EXPECT_EQ(p.counters().att_time_jumps, 1u);
+  EXPECT_EQ(p.core().buffer().size(), 1u);
+}
+
+TEST(DevicePipeline, NoHeapAllocationPerEvent) {
+  IdleCalibrator<float> cal;
+  Pipe<float> p(cal, config<float>());
+  RefusingSink sink;
+  auto emit = p.emit_to(sink);
+  feed_stream(p, 50, emit);  // warm-up
+  const test::AllocationScope scope;
+  feed_stream(p, 400, emit);
+  EXPECT_EQ(scope.count(), 0u);
+}
+
+}  // namespace
+}  // namespace magvec

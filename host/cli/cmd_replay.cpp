@@ -6,7 +6,9 @@
 // The live outputs recorded in the log are compared bit for bit with the replayed ones;
 // --logged-out also writes them as CSV; --check makes any difference an error (exit 3).
 #include <CLI/CLI.hpp>
+#include <cmath>
 #include <iostream>
+#include <limits>
 #include <memory>
 #include <optional>
 #include <string>
@@ -24,16 +26,23 @@ struct ReplayOptions {
   std::string logged_out;
   std::string pipeline_channel = "MAGVEC_PIPELINE";
   bool check = false;
+  double time_offset_s = std::numeric_limits<double>::quiet_NaN();
 };
 
 void run(const ReplayOptions& o) {
+  const bool overridden = std::isfinite(o.time_offset_s);
+  if (overridden && o.check)
+    throw CommandExit(2,
+                      "--check compares with the live outputs, which used the logged time offset: "
+                      "drop --check to replay with --time-offset-s, or drop --time-offset-s");
   hil::CsvRecordSink sink(o.out, {"magvec replay --lcm-log " + o.log});
   std::optional<hil::CsvRecordSink> logged;
   if (!o.logged_out.empty())
     logged.emplace(o.logged_out, std::vector<std::string>{"live outputs recorded in " + o.log});
   daemon::ReplayResult r;
   try {
-    r = daemon::replay_log(o.log, sink, logged ? &*logged : nullptr, o.pipeline_channel);
+    r = daemon::replay_log(o.log, sink, logged ? &*logged : nullptr, o.pipeline_channel,
+                           o.time_offset_s);
   } catch (const daemon::ReplayError& e) {
     throw CommandExit(2, e.what());
   }
@@ -51,6 +60,10 @@ void run(const ReplayOptions& o) {
     std::cout << "  calibration: " << s.calibrator << ", state " << core::cal_state_name(s.state)
               << ", cal_id " << s.cal_id << ", validation rms " << s.validation_rms_nT << " nT\n";
   }
+  if (overridden)
+    std::cout << "  time offset overridden: " << o.time_offset_s
+              << " s in every session (the live outputs used the logged one: differences are "
+                 "expected)\n";
   const bool identical =
       r.logged_records == r.records && r.compared == r.records && r.mismatches == 0;
   std::cout << "  live outputs in the log: " << r.logged_records << ", compared " << r.compared
@@ -75,6 +88,10 @@ void register_replay(CLI::App& app) {
                   "Also write the live outputs recorded in the log as a record CSV");
   sub->add_option("--pipeline-channel", opt->pipeline_channel, "Pipeline event channel")
       ->capture_default_str();
+  sub->add_option("--time-offset-s", opt->time_offset_s,
+                  "Replay with this magnetometer-INS time offset [s] instead of the logged one "
+                  "(magnetometer stamp minus the INS time of its attitude)")
+      ->check(CLI::Range(-10.0, 10.0));
   sub->add_flag("--check", opt->check,
                 "Exit 3 unless the replayed outputs are bit-identical to the logged ones");
   sub->callback([opt] { run(*opt); });

@@ -250,7 +250,7 @@ std::string fixed(double v, int digits) {
 }
 
 nlohmann::json stats_json(const ErrorStats& s) {
-  return {{"n", s.n}, {"mean_nT", s.mean}, {"rms_nT", s.rms()}, {"sd_nT", s.sd()}};
+  return {{"n", s.count()}, {"mean_nT", s.mean()}, {"rms_nT", s.rms()}, {"sd_nT", s.sd()}};
 }
 
 void run(const SoakOptions& o) {
@@ -388,9 +388,9 @@ void run(const SoakOptions& o) {
   std::cout << std::setw(12) << "RSS [KiB]\n";
   for (std::size_t i = 0; i < intervals; ++i) {
     const IntervalStats& st = sink.stats[i];
-    std::cout << std::setw(6) << i + 1 << std::setw(11) << st.err[0].n;
+    std::cout << std::setw(6) << i + 1 << std::setw(11) << st.err[0].count();
     for (const ErrorStats& s : st.err)
-      std::cout << std::setw(20) << (fixed(s.mean, 4) + " / " + fixed(s.rms(), 3));
+      std::cout << std::setw(20) << (fixed(s.mean(), 4) + " / " + fixed(s.rms(), 3));
     std::cout << std::setw(11) << st.rss_kib << "\n";
   }
   double worst_ratio = 0;

@@ -21,28 +21,15 @@
 #include <limits>
 #include <vector>
 
+#include "stats.hpp"
+
 namespace magvec::host::cli {
 
 inline constexpr double kDriftSigmas = 5.0;
 inline constexpr std::int64_t kRssSlackKiB = 1024;
 
 // Running mean and spread of an error (Welford: no cancellation over 10^8 samples).
-struct ErrorStats {
-  std::uint64_t n{0};
-  double mean{0};
-  double m2{0};
-  double sum_sq{0};
-
-  void add(double x) noexcept {
-    ++n;
-    const double d = x - mean;
-    mean += d / static_cast<double>(n);
-    m2 += d * (x - mean);
-    sum_sq += x * x;
-  }
-  double sd() const noexcept { return n > 1 ? std::sqrt(m2 / static_cast<double>(n - 1)) : 0.0; }
-  double rms() const noexcept { return n > 0 ? std::sqrt(sum_sq / static_cast<double>(n)) : 0.0; }
-};
+using ErrorStats = Stats;
 
 // Error components: East, North, Up, |h|.
 inline constexpr std::size_t kComponents = 4;
@@ -55,7 +42,7 @@ struct IntervalStats {
 
 // Standard error of a mean whose n samples hold n * eff_fraction independent errors.
 inline double standard_error(const ErrorStats& s, double eff_fraction) noexcept {
-  const double n_eff = static_cast<double>(s.n) * eff_fraction;
+  const double n_eff = static_cast<double>(s.count()) * eff_fraction;
   return n_eff >= 1 ? s.sd() / std::sqrt(n_eff) : std::numeric_limits<double>::infinity();
 }
 
@@ -89,11 +76,11 @@ inline std::vector<DriftCheck> drift_checks(const std::vector<IntervalStats>& in
       DriftCheck d;
       d.interval = i;
       d.component = c;
-      d.diff_nT = a.mean - b.mean;
+      d.diff_nT = a.mean() - b.mean();
       const double se_a = standard_error(a, f);
       const double se_b = standard_error(b, f);
       d.bound_nT = kDriftSigmas * std::sqrt(se_a * se_a + se_b * se_b);
-      if (a.n < 2 || b.n < 2) d.bound_nT = -1;  // nothing scored: fails
+      if (a.count() < 2 || b.count() < 2) d.bound_nT = -1;  // nothing scored: fails
       v.push_back(d);
     }
   }

@@ -1,7 +1,11 @@
 // LCM <-> HAL conversions; see lcm_codec.hpp.
 #include "magvec/host/daemon/lcm_codec.hpp"
 
+#include <cmath>
+#include <cstdlib>
 #include <cstring>
+#include <sstream>
+#include <string>
 
 namespace magvec::host::daemon {
 
@@ -152,6 +156,14 @@ magvec_lcm::pipeline_event solve_result_event(std::int64_t sequence, const Solve
   model_to_arrays(r.model, e.w, e.o_nT, e.rm_quat);
   e.cal_id = static_cast<std::int32_t>(r.ticket);
   e.time_offset_s = r.ok ? -1.0 : static_cast<double>(r.code);
+  // The rest of the solve's outcome, as TOML in the otherwise unused text field (no new field:
+  // the type's fingerprint, hence old logs, stay valid).
+  std::ostringstream extra;
+  extra.precision(9);
+  extra << "aligned = " << (r.aligned ? "true" : "false") << "\n";
+  if (std::isfinite(r.attitude_noise_deg))
+    extra << "attitude_noise_deg = " << r.attitude_noise_deg << "\n";
+  e.config_toml = extra.str();
   return e;
 }
 
@@ -162,6 +174,15 @@ SolveResult solve_result_from(const magvec_lcm::pipeline_event& e) noexcept {
   r.code = r.ok || !(e.time_offset_s <= 255) ? std::uint8_t{0}
                                              : static_cast<std::uint8_t>(e.time_offset_s);
   r.model = model_from_arrays(e.w, e.o_nT, e.rm_quat);
+  // Logs written before these keys existed: aligned, no attitude noise.
+  r.aligned = e.config_toml.find("aligned = false") == std::string::npos;
+  const std::size_t k = e.config_toml.find("attitude_noise_deg = ");
+  if (k != std::string::npos) {
+    const char* begin = e.config_toml.c_str() + k + 21;
+    char* end = nullptr;
+    const float v = std::strtof(begin, &end);
+    if (end != begin && std::isfinite(v) && v > 0) r.attitude_noise_deg = v;
+  }
   return r;
 }
 

@@ -3,15 +3,14 @@
 
 #include <cmath>
 
-#include "magvec/core/batch_li_calibrator.hpp"
-#include "magvec/core/ekf_calibrator.hpp"
 #include "magvec/host/daemon/sim_setup.hpp"
+#include "magvec/host/hil/calibrators.hpp"
 
 namespace magvec::host::daemon {
 namespace {
 
-using LiCal = core::BatchLiCalibrator<double, 512>;
-using EkfCal = core::EkfCalibrator<double, 256>;
+using LiCal = hil::LiCalibrator;
+using EkfCal = hil::EkfLoopCalibrator;
 
 std::string solver_reason(const hil::NullCalibrator&, std::uint8_t) {
   return "none";
@@ -43,6 +42,11 @@ class PipelineImpl final : public Pipeline {
     if (!offset_fixed_ && std::isfinite(offset_s))
       core_.set_time_offset_us(hil::offset_us_from_s(offset_s));
   }
+  void override_time_offset_s(double offset_s) noexcept override {
+    if (!std::isfinite(offset_s)) return;
+    core_.set_time_offset_us(hil::offset_us_from_s(offset_s));
+    offset_fixed_ = true;
+  }
   double time_offset_s() const noexcept override {
     return 1e-6 * static_cast<double>(core_.pipeline().time_offset_us());
   }
@@ -65,11 +69,15 @@ class PipelineImpl final : public Pipeline {
       const core::CalibratorSolve s = snapshot->solve(&r.model);
       r.ok = s.ok;
       r.code = s.code;
+      r.aligned = s.aligned;
+      r.attitude_noise_deg = s.attitude_noise_deg;
       return r;
     };
   }
   bool install_solve(const SolveResult& r) noexcept override {
-    return core_.loop().install_solve(r.ticket, core::CalibratorSolve{r.ok, r.code}, r.model);
+    core::CalibratorSolve solve{r.ok, r.code, r.aligned};
+    solve.attitude_noise_deg = r.attitude_noise_deg;
+    return core_.loop().install_solve(r.ticket, solve, r.model);
   }
   CalibrationStatus status() const override {
     const auto& lp = core_.loop();
@@ -107,26 +115,19 @@ std::unique_ptr<Pipeline> Pipeline::create(const Config& config, hal::RecordSink
   const double mag_rate = config.magnetometer.rate_hz;
   const double ins_rate = config.ins.rate_hz;
   const bool fixed = std::isfinite(config.ins.time_offset_s);
-  if (cc.mode == "li") {
-    core::BatchLiCalibratorConfig<double> lc;
-    lc.batch.mag_noise_nT = cc.noise_nT;
-    lc.batch.attitude_noise_deg = cc.attitude_noise_deg;
-    lc.min_samples = cc.li_min_samples;
-    return std::make_unique<PipelineImpl<LiCal>>("li", std::make_unique<LiCal>(lc), sink, hc,
-                                                 mag_rate, ins_rate, fixed);
-  }
-  if (cc.mode == "ekf") {
-    core::EkfCalibratorConfig<double> ec;
-    ec.ekf.noise_sigma_nT = cc.noise_nT;
-    ec.align = cc.ekf_align;
-    return std::make_unique<PipelineImpl<EkfCal>>("ekf", std::make_unique<EkfCal>(ec), sink, hc,
-                                                  mag_rate, ins_rate, fixed);
-  }
-  if (cc.mode == "none") {
-    return std::make_unique<PipelineImpl<hil::NullCalibrator>>(
-        "none", std::make_unique<hil::NullCalibrator>(), sink, hc, mag_rate, ins_rate, fixed);
-  }
-  throw ConfigError("calibration.mode: unknown calibrator '" + cc.mode + "'");
+  if (!hil::is_calibrator_mode(cc.mode))
+    throw ConfigError("calibration.mode: unknown calibrator '" + cc.mode + "'");
+  hil::CalibratorSpec spec;
+  spec.mode = cc.mode;
+  spec.noise_nT = cc.noise_nT;
+  spec.attitude_noise_deg = cc.attitude_noise_deg;
+  spec.li_min_samples = cc.li_min_samples;
+  spec.ekf_align = cc.ekf_align;
+  return hil::with_calibrator(spec, [&](auto cal) -> std::unique_ptr<Pipeline> {
+    using Cal = typename decltype(cal)::element_type;
+    return std::make_unique<PipelineImpl<Cal>>(cc.mode, std::move(cal), sink, hc, mag_rate,
+                                               ins_rate, fixed);
+  });
 }
 
 }  // namespace magvec::host::daemon

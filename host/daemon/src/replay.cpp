@@ -46,7 +46,8 @@ bool decode(const lcm::LogEvent* ev, Msg* msg) {
 }  // namespace
 
 ReplayResult replay_log(const std::string& path, hal::RecordSink& sink,
-                        hal::RecordSink* logged_sink, const std::string& pipeline_channel) {
+                        hal::RecordSink* logged_sink, const std::string& pipeline_channel,
+                        double time_offset_override_s) {
   lcm::LogFile log(path, "r");
   if (!log.good()) throw ReplayError(path + ": cannot open the LCM log");
   ReplayResult r;
@@ -79,6 +80,8 @@ ReplayResult replay_log(const std::string& path, hal::RecordSink& sink,
         throw ReplayError(path + ": event " + std::to_string(r.log_events) +
                           ": invalid session configuration: " + err.what());
       }
+      if (e.kind == magvec_lcm::pipeline_event::SESSION_START && ep.has_session())
+        ep.pipeline()->override_time_offset_s(time_offset_override_s);
       continue;
     }
     if (!ep.has_session()) continue;  // channel names come from the session configuration

@@ -10,6 +10,7 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <filesystem>
 #include <lcm/lcm-cpp.hpp>
 #include <memory>
@@ -251,6 +252,38 @@ TEST(SolveOnWorker, AReplayNeverSolvesInlineForAWorkerSession) {
   EXPECT_FALSE(ep.pipeline()->take_solve_job());  // handed out once
   ep.apply(solve_result_event(5, job()));
   EXPECT_EQ(ep.pipeline()->state(), core::CalState::kValidating);
+}
+
+// The solve's whole outcome crosses the log: an unaligned candidate (scalar EKF without its
+// alignment step) stays unaligned when a replay installs it, and the attitude noise the solve
+// used sets the vector check's floor; a SOLVE_RESULT of an older log reads as aligned.
+TEST(SolveResultEvent, CarriesAlignmentAndAttitudeNoise) {
+  SolveResult r;
+  r.ticket = 3;
+  r.ok = true;
+  r.aligned = false;
+  r.attitude_noise_deg = 0.0375f;
+  r.model.o = core::Vec3<double>(1.5, -2.0, 3.25);
+  const SolveResult back = solve_result_from(solve_result_event(9, r));
+  EXPECT_EQ(back.ticket, 3u);
+  EXPECT_TRUE(back.ok);
+  EXPECT_FALSE(back.aligned);
+  EXPECT_EQ(back.attitude_noise_deg, 0.0375f);
+  EXPECT_EQ(back.model.o, r.model.o);
+
+  SolveResult refused;
+  refused.code = 7;
+  const SolveResult refused_back = solve_result_from(solve_result_event(10, refused));
+  EXPECT_FALSE(refused_back.ok);
+  EXPECT_EQ(refused_back.code, 7);
+  EXPECT_TRUE(refused_back.aligned);
+  EXPECT_TRUE(std::isnan(refused_back.attitude_noise_deg));
+
+  magvec_lcm::pipeline_event old = solve_result_event(11, r);
+  old.config_toml.clear();  // written before the keys existed
+  const SolveResult old_back = solve_result_from(old);
+  EXPECT_TRUE(old_back.aligned);
+  EXPECT_TRUE(std::isnan(old_back.attitude_noise_deg));
 }
 
 }  // namespace

@@ -8,6 +8,7 @@
 
 #include <cstdint>
 #include <functional>
+#include <limits>
 #include <memory>
 #include <string>
 
@@ -37,6 +38,8 @@ struct SolveResult {
   std::uint32_t ticket{0};  // the loop's solve ticket (SensorLoop::solve_ticket)
   bool ok{false};
   std::uint8_t code{0};  // the calibrator's refusal code when !ok
+  bool aligned{true};    // CalibratorSolve::aligned: the candidate's Rm is an estimate
+  float attitude_noise_deg{std::numeric_limits<float>::quiet_NaN()};  // the solve's, NaN: none
   core::SensorModel<double> model{};
 };
 // Self-contained (owns a copy of the calibrator's data): may run on any thread, and after the
@@ -58,6 +61,9 @@ class Pipeline {
   // The magnetometer<->INS time offset of an installed calibration (ignored when the
   // configuration fixes devices.ins.time_offset_s).
   virtual void set_time_offset_s(double offset_s) noexcept = 0;
+  // Fixes the offset from now on, whatever the configuration and later calibrations say
+  // (`magvec replay --time-offset-s`).
+  virtual void override_time_offset_s(double offset_s) noexcept = 0;
   virtual double time_offset_s() const noexcept = 0;
   virtual void start_calibration() noexcept = 0;
   virtual void set_active(const core::SensorModel<double>& model,

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <stdexcept>
 #include <string>
 
@@ -37,9 +38,13 @@ struct ReplayResult {
   CalibrationStatus final_status{};
 };
 
-// Throws ReplayError if the log cannot be opened or holds no session start.
+// Throws ReplayError if the log cannot be opened or holds no session start. A finite
+// time_offset_override_s replaces the magnetometer<->INS time offset of every session (the
+// configured and the installed calibrations' alike): the replayed records then answer "what if
+// the offset had been this", and differ from the live ones.
 ReplayResult replay_log(const std::string& path, hal::RecordSink& sink,
                         hal::RecordSink* logged_sink = nullptr,
-                        const std::string& pipeline_channel = "MAGVEC_PIPELINE");
+                        const std::string& pipeline_channel = "MAGVEC_PIPELINE",
+                        double time_offset_override_s = std::numeric_limits<double>::quiet_NaN());
 
 }  // namespace magvec::host::daemon

@@ -195,7 +195,7 @@ TEST(DevicePipeline, InsReorderingIsNotAClockJump) {
   EXPECT_EQ(p.core().buffer().size(), 3u);
   p.on_attitude(ins_sample(30'000), none);
   EXPECT_EQ(p.counters().att_gaps, 1u);  // 0 -> 20 ms was a gap when it arrived
-  p.on_attitude(ins_sample(0), none);  // 30 ms back: still within the 50 ms gap, reordered
+  p.on_attitude(ins_sample(0), none);    // 30 ms back: still within the 50 ms gap, reordered
   EXPECT_EQ(p.counters().att_reordered, 2u);
   EXPECT_EQ(p.counters().att_rejected, 1u);  // a duplicate of the first epoch
   // 200 ms back: a new time base.

@@ -358,11 +358,12 @@ int store_and_reload(LineWriter& w, const std::uint8_t (&blob_old)[kBlobBytes]) 
                   std::memcmp(loaded, blob_new, kBlobBytes) == 0;
   w.str("MV reload ok=").u(ok ? 1 : 0).str(" seq=").u(seq).str(" bytes=").u(n).end();
   if (!ok) return 4;
-  // The reloaded model replaces the loop's (bit-identical: the blob holds doubles).
+  // The reloaded model replaces the loop's (bit-identical: the blob holds doubles); it keeps the
+  // alignment flag and the held-out sigma_F of the calibration it is.
   std::uint8_t again[kBlobBytes];
   serialise(model, again);
   if (std::memcmp(again, blob_new, kBlobBytes) != 0) return 4;
-  g_loop.set_active(model, g_loop.cal_id());
+  g_loop.set_active(model, g_loop.cal_id(), g_loop.active_aligned(), g_loop.active_sigma_f_nT());
   return rc;
 }
 

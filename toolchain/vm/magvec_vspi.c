@@ -3,7 +3,7 @@
  * magvec_vspi: a virtual SPI controller whose only device answers like a TI ADS131M04 front end
  * (frame format: drivers/codecs/include/magvec/drivers/ads131m04.hpp, behaviour as
  * drivers/sim SimAds131Device). It exists so that the project's spidev driver can be tested on a
- * real kernel (VM system tests, issue 7): the device is created with the modalias "dh2228fv",
+ * real kernel (VM system tests): the device is created with the modalias "dh2228fv",
  * which the built-in spidev driver binds to, giving /dev/spidev0.0. A second device (chip select
  * 1, /dev/spidev0.1) is a plain loopback (rx = tx) for tests of the transfer path itself.
  *

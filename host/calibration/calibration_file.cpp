@@ -184,6 +184,12 @@ std::string to_json_text(const CalibrationFile& cal) {
     }
     j["noise"] = noise;
   }
+  if (cal.output) {
+    json out = {{"aligned", cal.output->aligned}};
+    if (std::isfinite(cal.output->sigma_f_nT)) out["sigma_f_nT"] = cal.output->sigma_f_nT;
+    if (std::isfinite(cal.output->sigma_enu_nT)) out["sigma_enu_nT"] = cal.output->sigma_enu_nT;
+    j["output"] = out;
+  }
   json sigma = json::object();
   for (const auto& [name, values] : cal.sigma)
     sigma[name] = values;
@@ -266,6 +272,18 @@ CalibrationFile from_json_checked(const json& j, const std::string& source) {
     };
     cal.noise.mag_estimated = estimated("mag_source", "noise.mag_source");
     cal.noise.ins_estimated = estimated("ins_source", "noise.ins_source");
+  }
+  if (const json* oj = object_member(j, "output", source, "output")) {
+    OutputQuality out;
+    if (const json* a = member(*oj, "aligned")) {
+      if (!a->is_boolean()) fail(source, "field 'output.aligned' must be true or false");
+      out.aligned = a->get<bool>();
+    }
+    if (const json* v = member(*oj, "sigma_f_nT"))
+      out.sigma_f_nT = non_negative(*v, source, "output.sigma_f_nT");
+    if (const json* v = member(*oj, "sigma_enu_nT"))
+      out.sigma_enu_nT = non_negative(*v, source, "output.sigma_enu_nT");
+    cal.output = out;
   }
   if (const json* sp = object_member(j, "sine", source, "sine")) {
     const json& s = *sp;

@@ -60,6 +60,15 @@ struct NoiseFigures {
   bool ins_estimated = false;
 };
 
+// What records carry while this calibration is active, from the sensor loop's held-out
+// validation (JSON "output"; absent for calibrations not validated in a loop, e.g. `magvec
+// calibrate`: the loop then falls back to its configured noise).
+struct OutputQuality {
+  bool aligned = true;  // Rm estimates the misalignment to the INS (h_n is E/N/U)
+  double sigma_f_nT = std::numeric_limits<double>::quiet_NaN();    // 1-sigma of |h|
+  double sigma_enu_nT = std::numeric_limits<double>::quiet_NaN();  // 1-sigma per E/N/U axis
+};
+
 struct CalibrationFile {
   // False when the method refused before it had any solution (nothing to write, not even with
   // --force-write). Not stored in the file: a written file always holds a solution.
@@ -72,6 +81,7 @@ struct CalibrationFile {
   // 1-sigma of time_offset_s when it was estimated; absent when it was fixed or not observable.
   std::optional<double> time_offset_sigma_s;
   NoiseFigures noise;
+  std::optional<OutputQuality> output;
   std::optional<core::Vec3<double>> h_n_nT;
   std::optional<SineResult> sine;
   // 1-sigma of the paper-form parameters, by name (e.g. "ks", "O_deg", "Kof_nT", "Rm_deg").

@@ -13,6 +13,7 @@
 #include <deque>
 #include <filesystem>
 #include <iostream>
+#include <limits>
 #include <memory>
 #include <string>
 
@@ -118,7 +119,7 @@ class ScoringSink final : public hal::RecordSink {
 };
 
 void write_cal(const std::string& path, const LiCal& cal, double validation_rms_nT,
-               const DemoOptions& o) {
+               const OutputQuality& output, const DemoOptions& o) {
   const core::BatchResult<double>& r = cal.last_result();
   const double deg = 180.0 / core::kPi<double>;
   CalibrationFile f;
@@ -142,6 +143,15 @@ void write_cal(const std::string& path, const LiCal& cal, double validation_rms_
   f.quality.extra["enu_rms_E_nT"] = r.quality.enu_rms_nT(0);
   f.quality.extra["enu_rms_N_nT"] = r.quality.enu_rms_nT(1);
   f.quality.extra["enu_rms_U_nT"] = r.quality.enu_rms_nT(2);
+  f.output = output;
+  f.noise.mag_nT = r.noise.mag_nT;
+  f.noise.mag_sigma_nT = r.noise.mag_sigma_nT;
+  f.noise.mag_estimated = r.noise.estimated;
+  if (r.noise.has_attitude) {
+    f.noise.ins_deg = r.noise.attitude_deg;
+    f.noise.ins_sigma_deg = r.noise.attitude_sigma_deg;
+    f.noise.ins_estimated = r.noise.estimated;
+  }
   f.counts.samples = cal.counts().seen;
   f.counts.used = r.counts.used;
   f.counts.skipped_nonfinite = cal.counts().rejected;
@@ -172,11 +182,10 @@ void run(const DemoOptions& o) {
   rc.adc.seed = o.seed ^ 0xA1;
   rc.ins.seed = o.seed ^ 0xC3;
   hil::HilConfig hc;
-  hc.loop.noise_nT = o.noise_nT > 0 ? o.noise_nT : 1.0;
-  hc.loop.attitude_noise_deg = o.ins_noise_deg > 0 ? o.ins_noise_deg : 0.01;
-  hil::CalibratorSpec spec;
-  spec.noise_nT = hc.loop.noise_nT;
-  spec.attitude_noise_deg = hc.loop.attitude_noise_deg;
+  // The simulated noise is not told to the loop: the calibration estimates it, as in the field.
+  hc.loop.noise_nT = std::numeric_limits<double>::quiet_NaN();
+  hc.loop.attitude_noise_deg = std::numeric_limits<double>::quiet_NaN();
+  const hil::CalibratorSpec spec;
 
   hil::CsvRecordSink csv(records_path, {std::string("magvec ") + kVersion + " demo: survey seed " +
                                         std::to_string(o.seed) + ", li calibrator in the loop"});
@@ -214,12 +223,22 @@ void run(const DemoOptions& o) {
             << " samples (motion-decimated), coverage " << fixed(cal->coverage(), 2) << "; verdict "
             << core::verdict_name(res.verdict) << "; validation intensity RMS "
             << fixed(loop.last_validation_rms_nT(), 3) << " nT\n";
+  if (res.noise.estimated) {
+    std::cout << "  noise estimated from the data: magnetometer " << fixed(res.noise.mag_nT, 3)
+              << " +- " << fixed(res.noise.mag_sigma_nT, 3) << " nT/axis (simulated " << o.noise_nT
+              << "), INS " << fixed(res.noise.attitude_deg, 4) << " +- "
+              << fixed(res.noise.attitude_sigma_deg, 4) << " deg/angle (simulated "
+              << o.ins_noise_deg << ")\n";
+  }
   if (loop.state() != core::CalState::kApplied || !res.ok()) {
     throw std::runtime_error("the in-loop calibration did not apply (state " +
                              std::string(core::cal_state_name(loop.state())) + ", verdict " +
                              core::verdict_name(res.verdict) + ")");
   }
-  write_cal(cal_path, *cal, loop.last_validation_rms_nT(), o);
+  write_cal(
+      cal_path, *cal, loop.last_validation_rms_nT(),
+      OutputQuality{loop.active_aligned(), loop.active_sigma_f_nT(), loop.active_sigma_enu_nT()},
+      o);
 
   // Recovered parameters vs truth.
   core::LiParams<double> truth;

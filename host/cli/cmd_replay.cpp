@@ -2,7 +2,8 @@
 // magvecd LCM log: the raw magnetometer/attitude channels and the pipeline events
 // (session configuration, installed calibrations, calibration starts) in log order through the
 // daemon's own EventPipeline, as fast as possible. Writes the record CSV of `magvec run` (the
-// `magvec apply` columns t_s, hx..hz, hsx..hsz, F, hE/hN/hU, flags, plus cal_id and sigma_F_nT).
+// `magvec apply` columns t_s, hx..hz, hsx..hsz, F, hE/hN/hU, flags, plus cal_id, sigma_F_nT and
+// sigma_ENU_nT).
 // The live outputs recorded in the log are compared bit for bit with the replayed ones;
 // --logged-out also writes them as CSV; --check makes any difference an error (exit 3).
 #include <CLI/CLI.hpp>

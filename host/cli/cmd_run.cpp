@@ -44,6 +44,10 @@ struct RunOptions {
   std::uint32_t ins_latency_comp_us = 500;
   std::uint32_t fusion_horizon_us = 50'000;
   double time_offset_s = std::numeric_limits<double>::quiet_NaN();
+  // Known noise figures for the in-loop calibrator and validation (NaN: estimated from the data;
+  // never the simulator's own figures, which the code under test must not know).
+  double noise_nT = std::numeric_limits<double>::quiet_NaN();
+  double ins_noise_deg = std::numeric_limits<double>::quiet_NaN();
 };
 
 using LiCal = host::hil::LiCalibrator;
@@ -181,8 +185,8 @@ void run(const RunOptions& o) {
   rc.ins.seed = o.seed ^ 0xC3;
   apply_faults(o.faults, &sc, &rc);
   host::hil::HilConfig hc;
-  hc.loop.noise_nT = sc.mag_noise_nT > 0 ? sc.mag_noise_nT : 1.0;
-  hc.loop.attitude_noise_deg = sc.ins_noise_deg > 0 ? sc.ins_noise_deg : 0.01;
+  hc.loop.noise_nT = o.noise_nT;
+  hc.loop.attitude_noise_deg = o.ins_noise_deg;
   // Configured, never taken from the injected fault: the loop does not know the true latency.
   hc.ins_latency_comp_us = o.ins_latency_comp_us;
   hc.horizon_us = o.fusion_horizon_us;
@@ -245,6 +249,14 @@ void register_run(CLI::App& app) {
                   "Magnetometer stamp minus INS time of its attitude (s); overrides the "
                   "--calibration file's time_offset_s")
       ->check(CLI::Range(-10.0, 10.0));
+  sub->add_option("--noise-nT", opt->noise_nT,
+                  "Known magnetometer noise SD per axis for the in-loop calibrator and its "
+                  "validation (default: estimated from the data)")
+      ->check(CLI::Range(1e-6, 1e5));
+  sub->add_option("--ins-noise-deg", opt->ins_noise_deg,
+                  "Known INS attitude noise SD per angle for the in-loop calibrator and the "
+                  "vector check (default: estimated from the data)")
+      ->check(CLI::Range(1e-6, 10.0));
   sub->add_option("--out", opt->out, "Record CSV (written atomically)")->required();
   sub->callback([opt] { run(*opt); });
 }

@@ -33,7 +33,11 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
        {c.ins.ids.status_01, c.ins.ids.status_03, c.ins.ids.ekf_info, c.ins.ids.ekf_quat,
         c.ins.ids.ekf_euler, c.ins.ids.ekf_orientation_acc})
     FUZZ_CHECK(id <= 0x7FF);
-  FUZZ_CHECK(c.calibration.noise_nT >= 1e-6 && c.calibration.noise_nT <= 1e5);
+  // nan: not known (estimated from the data); anything else within range.
+  FUZZ_CHECK(std::isnan(c.calibration.noise_nT) ||
+             (c.calibration.noise_nT >= 1e-6 && c.calibration.noise_nT <= 1e5));
+  FUZZ_CHECK(std::isnan(c.calibration.attitude_noise_deg) ||
+             (c.calibration.attitude_noise_deg >= 1e-6 && c.calibration.attitude_noise_deg <= 10));
   FUZZ_CHECK(
       std::isnan(c.calibration.reference_field_nT) ||
       (c.calibration.reference_field_nT >= 1000 && c.calibration.reference_field_nT <= 200000));

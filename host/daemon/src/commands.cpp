@@ -37,7 +37,7 @@ CommandOutcome run_command(const std::string& c, const CommandContext& ctx,
     const PersistedCalibration& p = ctx.persisted;
     const core::SensorModel<double> identity;
     act.set_active(p.present ? p.model : identity, p.present ? p.cal_id : 0,
-                   p.present ? p.time_offset_s : 0);
+                   p.present ? p.time_offset_s : 0, p.present ? p.output : OutputQuality{});
     r.ok = true;
     r.message = p.present ? "reverted to the persisted calibration " + std::to_string(p.cal_id)
                           : "no persisted calibration: reverted to the identity (uncalibrated)";

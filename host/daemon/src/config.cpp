@@ -344,8 +344,8 @@ Config parse_config(const std::string& text, const std::string& source) {
   cal.one_of("mode", &cc.mode, {"li", "ekf", "none"});
   cal.boolean("start_on_boot", &cc.start_on_boot);
   cal.boolean("auto_accept", &cc.auto_accept);
-  cal.number("noise_nT", &cc.noise_nT, 1e-6, 1e5);
-  cal.number("attitude_noise_deg", &cc.attitude_noise_deg, 1e-6, 10);
+  cal.number_or_nan("noise_nT", &cc.noise_nT, 1e-6, 1e5);
+  cal.number_or_nan("attitude_noise_deg", &cc.attitude_noise_deg, 1e-6, 10);
   cal.integer("validation_samples", &cc.validation_samples, 1, 1'000'000);
   cal.number("validation_max_rms_factor", &cc.validation_max_rms_factor, 0.1, 1000);
   cal.number("validation_min_rms_nT", &cc.validation_min_rms_nT, 0, 1e5);

@@ -375,8 +375,9 @@ void Daemon::on_command(const magvec_lcm::command& cmd) {
   CommandActions act;
   act.start_calibration = [this] { event(start_calibration_event(++sequence_)); };
   act.persist = [this](const CalibrationStatus& st) { return persist(st, "accept command"); };
-  act.set_active = [this](const core::SensorModel<double>& m, std::uint32_t id, double offset_s) {
-    event(set_active_event(++sequence_, m, id, offset_s));
+  act.set_active = [this](const core::SensorModel<double>& m, std::uint32_t id, double offset_s,
+                          const OutputQuality& output) {
+    event(set_active_event(++sequence_, m, id, offset_s, output));
   };
   const CommandOutcome out = run_command(cmd.command, ctx, act);
   magvec_lcm::command_reply r{};

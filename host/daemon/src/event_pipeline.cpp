@@ -21,7 +21,7 @@ void EventPipeline::apply(const magvec_lcm::pipeline_event& e) {
         return;
       }
       pipeline_->set_active(model_from_arrays(e.w, e.o_nT, e.rm_quat),
-                            static_cast<std::uint32_t>(e.cal_id));
+                            static_cast<std::uint32_t>(e.cal_id), output_quality_from(e));
       pipeline_->set_time_offset_s(e.time_offset_s);
       return;
     case magvec_lcm::pipeline_event::START_CALIBRATION:

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
+#include <limits>
 #include <sstream>
 #include <string>
 
@@ -70,6 +71,7 @@ magvec_lcm::calibrated_vector to_lcm(const hal::OutputRecord& r) noexcept {
   }
   m.f_nT = r.f_nT;
   m.sigma_f_nT = r.sigma_f_nT;
+  m.sigma_enu_nT = r.sigma_enu_nT;
   m.flags = static_cast<std::int32_t>(r.flags);
   m.cal_id = static_cast<std::int32_t>(r.cal_id);
   return m;
@@ -85,6 +87,7 @@ hal::OutputRecord from_lcm(const magvec_lcm::calibrated_vector& m) noexcept {
   }
   r.f_nT = m.f_nT;
   r.sigma_f_nT = m.sigma_f_nT;
+  r.sigma_enu_nT = m.sigma_enu_nT;
   r.flags = static_cast<std::uint32_t>(m.flags);
   r.cal_id = static_cast<std::uint32_t>(m.cal_id);
   return r;
@@ -125,6 +128,36 @@ magvec_lcm::pipeline_event blank_event(std::int8_t kind, std::int64_t sequence) 
   e.cal_id = 0;
   return e;
 }
+// The extras of SET_ACTIVE and SOLVE_RESULT travel as "key = value" lines in the event's text
+// field, which those kinds do not otherwise use: no new field, so the type's fingerprint, hence
+// old logs, stay valid.
+double extra_number(const std::string& text, const char* key) noexcept {
+  const std::string k = std::string(key) + " = ";
+  std::size_t at = 0;
+  while ((at = text.find(k, at)) != std::string::npos) {
+    if (at == 0 || text[at - 1] == '\n') {
+      const char* begin = text.c_str() + at + k.size();
+      char* end = nullptr;
+      const double v = std::strtod(begin, &end);
+      return end != begin ? v : std::numeric_limits<double>::quiet_NaN();
+    }
+    at += k.size();
+  }
+  return std::numeric_limits<double>::quiet_NaN();
+}
+
+bool extra_false(const std::string& text, const char* key) noexcept {
+  const std::string k = std::string(key) + " = false";
+  const std::size_t at = text.find(k);
+  return at != std::string::npos && (at == 0 || text[at - 1] == '\n');
+}
+
+// A finite positive figure, else NaN (a corrupt or hand-edited log never installs a negative
+// or infinite sigma).
+double positive_or_nan(double v) noexcept {
+  return std::isfinite(v) && v > 0 ? v : std::numeric_limits<double>::quiet_NaN();
+}
+
 }  // namespace
 
 magvec_lcm::pipeline_event session_start_event(std::int64_t sequence, const std::string& config) {
@@ -135,12 +168,27 @@ magvec_lcm::pipeline_event session_start_event(std::int64_t sequence, const std:
 
 magvec_lcm::pipeline_event set_active_event(std::int64_t sequence,
                                             const core::SensorModel<double>& model,
-                                            std::uint32_t cal_id, double time_offset_s) {
+                                            std::uint32_t cal_id, double time_offset_s,
+                                            const OutputQuality& output) {
   magvec_lcm::pipeline_event e = blank_event(magvec_lcm::pipeline_event::SET_ACTIVE, sequence);
   model_to_arrays(model, e.w, e.o_nT, e.rm_quat);
   e.cal_id = static_cast<std::int32_t>(cal_id);
   e.time_offset_s = time_offset_s;
+  std::ostringstream extra;
+  extra.precision(17);  // the records after a replayed SET_ACTIVE are bit-identical
+  extra << "aligned = " << (output.aligned ? "true" : "false") << "\n";
+  if (std::isfinite(output.sigma_f_nT)) extra << "sigma_f_nT = " << output.sigma_f_nT << "\n";
+  if (std::isfinite(output.sigma_enu_nT)) extra << "sigma_enu_nT = " << output.sigma_enu_nT << "\n";
+  e.config_toml = extra.str();
   return e;
+}
+
+OutputQuality output_quality_from(const magvec_lcm::pipeline_event& e) noexcept {
+  OutputQuality q;
+  q.aligned = !extra_false(e.config_toml, "aligned");
+  q.sigma_f_nT = positive_or_nan(extra_number(e.config_toml, "sigma_f_nT"));
+  q.sigma_enu_nT = positive_or_nan(extra_number(e.config_toml, "sigma_enu_nT"));
+  return q;
 }
 
 magvec_lcm::pipeline_event start_calibration_event(std::int64_t sequence) {
@@ -156,13 +204,14 @@ magvec_lcm::pipeline_event solve_result_event(std::int64_t sequence, const Solve
   model_to_arrays(r.model, e.w, e.o_nT, e.rm_quat);
   e.cal_id = static_cast<std::int32_t>(r.ticket);
   e.time_offset_s = r.ok ? -1.0 : static_cast<double>(r.code);
-  // The rest of the solve's outcome, as TOML in the otherwise unused text field (no new field:
-  // the type's fingerprint, hence old logs, stay valid).
+  // The rest of the solve's outcome in the text field (extra_number). 9 digits: a float's exact
+  // round trip.
   std::ostringstream extra;
   extra.precision(9);
   extra << "aligned = " << (r.aligned ? "true" : "false") << "\n";
   if (std::isfinite(r.attitude_noise_deg))
     extra << "attitude_noise_deg = " << r.attitude_noise_deg << "\n";
+  if (std::isfinite(r.mag_noise_nT)) extra << "mag_noise_nT = " << r.mag_noise_nT << "\n";
   e.config_toml = extra.str();
   return e;
 }
@@ -174,15 +223,11 @@ SolveResult solve_result_from(const magvec_lcm::pipeline_event& e) noexcept {
   r.code = r.ok || !(e.time_offset_s <= 255) ? std::uint8_t{0}
                                              : static_cast<std::uint8_t>(e.time_offset_s);
   r.model = model_from_arrays(e.w, e.o_nT, e.rm_quat);
-  // Logs written before these keys existed: aligned, no attitude noise.
-  r.aligned = e.config_toml.find("aligned = false") == std::string::npos;
-  const std::size_t k = e.config_toml.find("attitude_noise_deg = ");
-  if (k != std::string::npos) {
-    const char* begin = e.config_toml.c_str() + k + 21;
-    char* end = nullptr;
-    const float v = std::strtof(begin, &end);
-    if (end != begin && std::isfinite(v) && v > 0) r.attitude_noise_deg = v;
-  }
+  // Logs written before these keys existed: aligned, no noise figures.
+  r.aligned = !extra_false(e.config_toml, "aligned");
+  r.attitude_noise_deg =
+      static_cast<float>(positive_or_nan(extra_number(e.config_toml, "attitude_noise_deg")));
+  r.mag_noise_nT = static_cast<float>(positive_or_nan(extra_number(e.config_toml, "mag_noise_nT")));
   return r;
 }
 
@@ -210,7 +255,8 @@ bool bit_identical(const hal::OutputRecord& a, const hal::OutputRecord& b) noexc
         !same(a.h_n_nT[i], b.h_n_nT[i]))
       return false;
   }
-  return same(a.f_nT, b.f_nT) && same(a.sigma_f_nT, b.sigma_f_nT);
+  return same(a.f_nT, b.f_nT) && same(a.sigma_f_nT, b.sigma_f_nT) &&
+         same(a.sigma_enu_nT, b.sigma_enu_nT);
 }
 
 }  // namespace magvec::host::daemon

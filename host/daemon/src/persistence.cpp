@@ -28,6 +28,7 @@ PersistedCalibration CalibrationStore::load() {
     p.present = true;
     p.model = f.model;
     p.time_offset_s = f.time_offset_s;
+    if (f.output) p.output = *f.output;
     // A file written by `magvec calibrate` has no cal_id: it becomes calibration 1.
     const auto it = f.quality.extra.find("cal_id");
     p.cal_id = it != f.quality.extra.end() && it->second >= 1 && it->second < 4e9
@@ -55,6 +56,7 @@ bool CalibrationStore::save(const CalibrationStatus& st, double time_offset_s,
   f.quality.reason = "accepted by magvecd (" + why + ")";
   f.quality.extra["cal_id"] = st.cal_id;
   f.quality.extra["validation_rms_nT"] = st.validation_rms_nT;
+  f.output = st.output;
   f.provenance.input = "magvecd live calibration";
   f.provenance.method = st.calibrator;
   f.provenance.magvec_version = kVersion;
@@ -69,6 +71,7 @@ bool CalibrationStore::save(const CalibrationStatus& st, double time_offset_s,
   persisted_.model = st.active;
   persisted_.cal_id = st.cal_id;
   persisted_.time_offset_s = time_offset_s;
+  persisted_.output = st.output;
   return true;
 }
 

@@ -51,8 +51,9 @@ class PipelineImpl final : public Pipeline {
     return 1e-6 * static_cast<double>(core_.pipeline().time_offset_us());
   }
   void start_calibration() noexcept override { core_.loop().start_calibration(); }
-  void set_active(const core::SensorModel<double>& model, std::uint32_t cal_id) noexcept override {
-    core_.loop().set_active(model, cal_id);
+  void set_active(const core::SensorModel<double>& model, std::uint32_t cal_id,
+                  const OutputQuality& output) noexcept override {
+    core_.loop().set_active(model, cal_id, output.aligned, output.sigma_f_nT, output.sigma_enu_nT);
   }
   void set_external_solve(bool on) noexcept override { core_.loop().set_external_solve(on); }
   SolveJob take_solve_job() override {
@@ -71,12 +72,14 @@ class PipelineImpl final : public Pipeline {
       r.code = s.code;
       r.aligned = s.aligned;
       r.attitude_noise_deg = s.attitude_noise_deg;
+      r.mag_noise_nT = s.mag_noise_nT;
       return r;
     };
   }
   bool install_solve(const SolveResult& r) noexcept override {
     core::CalibratorSolve solve{r.ok, r.code, r.aligned};
     solve.attitude_noise_deg = r.attitude_noise_deg;
+    solve.mag_noise_nT = r.mag_noise_nT;
     return core_.loop().install_solve(r.ticket, solve, r.model);
   }
   CalibrationStatus status() const override {
@@ -93,6 +96,7 @@ class PipelineImpl final : public Pipeline {
     s.validation_rms_nT = lp.last_validation_rms_nT();
     s.cal_id = lp.cal_id();
     s.active = lp.active_model();
+    s.output = OutputQuality{lp.active_aligned(), lp.active_sigma_f_nT(), lp.active_sigma_enu_nT()};
     return s;
   }
   core::CalState state() const noexcept override { return core_.loop().state(); }

@@ -14,6 +14,7 @@ SessionPlan plan_session(const Config& config, const std::string& config_text,
     install.model = st.active;
     install.cal_id = st.cal_id;
     install.time_offset_s = running->time_offset_s();
+    install.output = st.output;
     plan.calibration_restarted = st.state == core::CalState::kCollecting ||
                                  st.state == core::CalState::kSolving ||
                                  st.state == core::CalState::kValidating;
@@ -21,8 +22,8 @@ SessionPlan plan_session(const Config& config, const std::string& config_text,
   plan.events.push_back(session_start_event(++*sequence, config_text));
   if (config.calibration.solve_on_worker) plan.events.push_back(solve_on_worker_event(++*sequence));
   if (install.present)
-    plan.events.push_back(
-        set_active_event(++*sequence, install.model, install.cal_id, install.time_offset_s));
+    plan.events.push_back(set_active_event(++*sequence, install.model, install.cal_id,
+                                           install.time_offset_s, install.output));
   const bool start =
       running == nullptr ? config.calibration.start_on_boot : plan.calibration_restarted;
   if (config.calibration.mode != "none" && start)

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <limits>
 #include <random>
 
 #include "magvec/core/frames.hpp"
@@ -21,6 +22,7 @@ struct FakeCalibrator {
   std::uint32_t seen{0};
   bool refuse{false};
   bool aligned{true};
+  float mag_noise_nT{std::numeric_limits<float>::quiet_NaN()};  // what the "solve" estimated
   int begins{0};
   void begin() noexcept {
     seen = 0;
@@ -36,7 +38,9 @@ struct FakeCalibrator {
   CalibratorSolve solve(SensorModel<double>* out) noexcept {
     if (refuse) return {false, 7};
     *out = result;
-    return {true, 0, aligned};
+    CalibratorSolve r{true, 0, aligned};
+    r.mag_noise_nT = mag_noise_nT;
+    return r;
   }
 };
 
@@ -392,6 +396,77 @@ TEST(SensorLoop, SigmaFComesFromTheValidation) {
   EXPECT_EQ(loop.process(feed.next(truth_model(), &r), &r).sigma_f_nT, rms);
   loop.set_active(truth_model(), 9, true, 0.1);  // below the noise: the noise
   EXPECT_EQ(loop.process(feed.next(truth_model(), &r), &r).sigma_f_nT, 0.3);
+}
+
+// A survey team rarely knows its noise. With no configured noise (NaN) a candidate is judged by
+// the noise its solve estimated from the data; a configured figure overrides, so a wrong one
+// (0.3 nT told, 3 nT real) refuses the calibration rather than hiding the discrepancy.
+TEST(SensorLoop, UnknownNoiseIsJudgedByTheNoiseTheSolveEstimated) {
+  constexpr double kNoise = 3.0;  // MEMS-level magnetometer noise per axis
+  LoopConfig<double> unknown;
+  unknown.noise_nT = std::numeric_limits<double>::quiet_NaN();
+  unknown.attitude_noise_deg = 0.01;
+  FakeCalibrator cal;
+  cal.result = truth_model();
+  cal.mag_noise_nT = static_cast<float>(kNoise);
+  SensorLoop<double, FakeCalibrator> loop(cal, unknown);
+  Feed feed;
+  feed.noise = std::normal_distribution<double>(0, kNoise);
+  Mat3<double> r;
+  EXPECT_TRUE(std::isnan(loop.process(feed.next(truth_model(), &r), &r).sigma_f_nT));
+  run_to_end(loop, feed);
+  ASSERT_EQ(loop.state(), CalState::kApplied) << cal_failure_name(loop.failure());
+  EXPECT_GT(loop.last_validation_rms_nT(), 0.8 * kNoise);  // the noise, not below it
+  EXPECT_LT(loop.last_validation_rms_nT(), 1.2 * kNoise);
+  EXPECT_GE(loop.active_sigma_f_nT(), kNoise);  // never below the estimated noise
+
+  // Told 0.3 nT: the held-out RMS of ~3 nT is out of 3 x 0.3 (and of the 1 nT floor).
+  LoopConfig<double> told = unknown;
+  told.noise_nT = 0.3;
+  FakeCalibrator cal2 = cal;
+  SensorLoop<double, FakeCalibrator> loop2(cal2, told);
+  run_to_end(loop2, feed);
+  EXPECT_EQ(loop2.state(), CalState::kFailed);
+  EXPECT_EQ(loop2.failure(), CalFailure::kValidationFailed);
+
+  // Neither configured nor estimated: only the absolute floor (1 nT) is left, which 3 nT noise
+  // does not meet.
+  FakeCalibrator cal3 = cal;
+  cal3.mag_noise_nT = std::numeric_limits<float>::quiet_NaN();
+  SensorLoop<double, FakeCalibrator> loop3(cal3, unknown);
+  run_to_end(loop3, feed);
+  EXPECT_EQ(loop3.state(), CalState::kFailed);
+}
+
+// sigma_ENU of the records: NaN until an aligned calibration is applied and for records without
+// attitude; then the held-out E/N/U scatter, never below sqrt(sigma_F^2 + (F sigma_att)^2).
+TEST(SensorLoop, SigmaEnuFromTheHeldOutVectorScatterAndTheAttitudeNoise) {
+  FakeCalibrator cal;
+  cal.result = truth_model();
+  LoopConfig<double> cfg;
+  cfg.noise_nT = 0.3;
+  cfg.attitude_noise_deg = 0.01;  // 9.4 nT at 54 uT: above the feed's exact attitudes' scatter
+  SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+  Feed feed;
+  Mat3<double> r;
+  EXPECT_TRUE(std::isnan(loop.process(feed.next(truth_model(), &r), &r).sigma_enu_nT));
+  run_to_end(loop, feed);
+  ASSERT_EQ(loop.state(), CalState::kApplied);
+  const double f = feed.h_n.norm();
+  const double att = 0.01 * kDeg * f;
+  const double sf = loop.active_sigma_f_nT();
+  EXPECT_GT(loop.last_validation_vector_rms_nT(), 0.0);
+  EXPECT_LT(loop.last_validation_vector_rms_nT(), 1.0);
+  EXPECT_NEAR(loop.active_sigma_enu_nT(), std::sqrt(sf * sf + att * att), 0.02 * att);
+  const OutputRecord<double> rec = loop.process(feed.next(truth_model(), &r), &r);
+  EXPECT_EQ(rec.sigma_enu_nT, loop.active_sigma_enu_nT());
+  MagSample<double> s = feed.next(truth_model(), &r);
+  EXPECT_TRUE(std::isnan(loop.process(s, nullptr).sigma_enu_nT));  // no attitude: no E/N/U
+  // A stored calibration brings its own figures; a scatter above the floor is kept.
+  loop.set_active(truth_model(), 5, true, 0.5, 40.0);
+  EXPECT_EQ(loop.process(feed.next(truth_model(), &r), &r).sigma_enu_nT, 40.0);
+  loop.set_active(truth_model(), 6, false, 0.5, 40.0);  // not aligned: h_n is not E/N/U
+  EXPECT_TRUE(std::isnan(loop.process(feed.next(truth_model(), &r), &r).sigma_enu_nT));
 }
 
 }  // namespace

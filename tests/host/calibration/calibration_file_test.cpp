@@ -33,6 +33,7 @@ CalibrationFile sample_file() {
   cal.quality.residual_rms_after_nT = 0.3;
   cal.counts = {1000, 980, 12, 8};
   cal.provenance = {"survey.csv", "li-ml", "0.1.0", "2026-11-21T00:00:00Z"};
+  cal.output = OutputQuality{false, 0.45, 11.25};
   return cal;
 }
 
@@ -49,6 +50,10 @@ TEST(CalibrationFile, RoundTripsThroughJson) {
   EXPECT_EQ(back.quality.verdict, "ok");
   EXPECT_EQ(back.counts.rejected_outliers, 8u);
   EXPECT_EQ(back.provenance.method, "li-ml");
+  ASSERT_TRUE(back.output.has_value());
+  EXPECT_FALSE(back.output->aligned);
+  EXPECT_EQ(back.output->sigma_f_nT, 0.45);
+  EXPECT_EQ(back.output->sigma_enu_nT, 11.25);
   // The Li block carries the paper's parameters in degrees.
   EXPECT_NE(text.find("\"Rm_deg\""), std::string::npos);
   EXPECT_NE(text.find("\"Cinv\""), std::string::npos);
@@ -153,6 +158,9 @@ TEST(CalibrationFile, WrongTypesNameFileAndField) {
            {"/ge", "[]", "'ge' must be an object"},
            {"/sigma", "2", "'sigma' must be an object"},
            {"/h_n_nT", "{}", "'h_n_nT' must be an array of 3"},
+           {"/output", "[]", "'output' must be an object"},
+           {"/output/aligned", "\"yes\"", "'output.aligned' must be true or false"},
+           {"/output/sigma_f_nT", "\"1\"", "'output.sigma_f_nT' must be a finite number"},
        }) {
     SCOPED_TRACE(c.pointer + " = " + c.raw);
     const std::string msg = read_error(with_member(c.pointer, c.raw));
@@ -183,8 +191,9 @@ TEST(CalibrationFile, CountsMustBeNonNegativeIntegersThatFit) {
 }
 
 TEST(CalibrationFile, SigmasAndNoiseFiguresMustNotBeNegative) {
-  for (const char* pointer : {"/time_offset_sigma_s", "/noise/mag_nT", "/noise/mag_sigma_nT",
-                              "/noise/ins_deg", "/noise/ins_sigma_deg"}) {
+  for (const char* pointer :
+       {"/time_offset_sigma_s", "/noise/mag_nT", "/noise/mag_sigma_nT", "/noise/ins_deg",
+        "/noise/ins_sigma_deg", "/output/sigma_f_nT", "/output/sigma_enu_nT"}) {
     SCOPED_TRACE(pointer);
     EXPECT_NE(read_error(with_member(pointer, "-0.1")).find("must not be negative"),
               std::string::npos);

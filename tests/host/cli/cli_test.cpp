@@ -252,6 +252,58 @@ TEST_F(Cli, DemoCalibratesInTheLoopAndWritesRecordsAndCalibration) {
   EXPECT_GT(calibrated, rows / 2);
 }
 
+// Field-grade noise (a MEMS-class magnetometer, a tactical INS) that the loop is not told: the
+// in-loop calibration estimates it, validates against its estimate and applies; the records'
+// sigma_ENU agrees with the E/N/U error the demo scores against the simulation TRUTH.
+TEST_F(Cli, DemoWithFieldNoiseCalibratesWithDefaultsAndReportsHonestSigmas) {
+  const Result r = run("demo --noise-nT 3 --ins-noise-deg 0.05 --out-dir " + file("demo"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("Calibration: state applied, cal_id 1"), std::string::npos) << r.output;
+  const magvec::host::CalibrationFile cal =
+      magvec::host::read_calibration_file((dir_ / "demo" / "cal.json").string());
+  ASSERT_TRUE(cal.noise.mag_estimated);
+  EXPECT_NEAR(cal.noise.mag_nT, 3.0, 0.6);
+  ASSERT_TRUE(cal.noise.ins_estimated);
+  EXPECT_NEAR(cal.noise.ins_deg, 0.05, 0.015);
+  ASSERT_TRUE(cal.output.has_value());
+  EXPECT_TRUE(cal.output->aligned);
+  // The scored E/N/U RMS error after calibration, against the truth, per component.
+  std::vector<double> err_after;
+  for (const char* name : {"  East ", "  North", "  Up   "}) {
+    const auto pos = r.output.find(name);
+    ASSERT_NE(pos, std::string::npos) << r.output;
+    std::istringstream row(r.output.substr(pos + 7, 120));
+    double sd_before = 0, sd_after = 0, rms_before = 0, rms_after = 0;
+    row >> sd_before >> sd_after >> rms_before >> rms_after;
+    err_after.push_back(rms_after);
+  }
+  const double err_rms = std::sqrt(
+      (err_after[0] * err_after[0] + err_after[1] * err_after[1] + err_after[2] * err_after[2]) /
+      3.0);
+  // F sigma_att (~47 nT at 54 uT and 0.05 deg) dominates both.
+  EXPECT_GT(cal.output->sigma_enu_nT, 0.7 * err_rms) << r.output;
+  EXPECT_LT(cal.output->sigma_enu_nT, 1.5 * err_rms) << r.output;
+  // Every calibrated record with attitude carries that sigma; records without it carry NaN.
+  magvec::host::io::CsvReader reader((dir_ / "demo" / "records.csv").string());
+  const auto sigma_col = reader.column_index("sigma_ENU_nT");
+  const auto cal_col = reader.column_index("cal_id");
+  const auto e_col = reader.column_index("hE_nT");
+  ASSERT_TRUE(sigma_col && cal_col && e_col);
+  magvec::host::io::CsvRecord rec;
+  std::uint64_t with_sigma = 0;
+  while (reader.next(&rec)) {
+    const double sigma = reader.value(*sigma_col);
+    const bool enu = reader.value(*cal_col) == 1.0 && std::isfinite(reader.value(*e_col));
+    if (enu) {
+      EXPECT_NEAR(sigma, cal.output->sigma_enu_nT, 1e-9 * cal.output->sigma_enu_nT);
+      ++with_sigma;
+    } else {
+      EXPECT_TRUE(std::isnan(sigma));
+    }
+  }
+  EXPECT_GT(with_sigma, 30000u);
+}
+
 }  // namespace
 
 namespace {
@@ -262,9 +314,9 @@ TEST_F(Cli, RunSimWritesRecordsAndCountsFaults) {
       run("run --sim survey --duration 20 --seed 4 --faults crc=0.02,dropout=0.01 --out " + out);
   ASSERT_EQ(r.status, 0) << r.output;
   magvec::host::io::CsvReader reader(out);
-  const std::vector<std::string> expected{"t_s",    "hx_nT",  "hy_nT",  "hz_nT",     "hsx_nT",
-                                          "hsy_nT", "hsz_nT", "F_nT",   "hE_nT",     "hN_nT",
-                                          "hU_nT",  "flags",  "cal_id", "sigma_F_nT"};
+  const std::vector<std::string> expected{
+      "t_s",   "hx_nT", "hy_nT", "hz_nT", "hsx_nT", "hsy_nT",     "hsz_nT",      "F_nT",
+      "hE_nT", "hN_nT", "hU_nT", "flags", "cal_id", "sigma_F_nT", "sigma_ENU_nT"};
   EXPECT_EQ(reader.columns(), expected);
   magvec::host::io::CsvRecord rec;
   std::uint64_t rows = 0;

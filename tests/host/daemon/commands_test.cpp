@@ -20,7 +20,8 @@ struct Recorder {
       ++persists;
       return persist_ok;
     };
-    a.set_active = [this](const core::SensorModel<double>&, std::uint32_t id, double off) {
+    a.set_active = [this](const core::SensorModel<double>&, std::uint32_t id, double off,
+                          const OutputQuality&) {
       ++set_actives;
       set_active_id = id;
       set_active_offset_s = off;

@@ -37,6 +37,7 @@ class CalibrationStoreTest : public ::testing::Test {
     st.active.w << 1.01, 0.002, -0.001, 0, 0.99, 0.003, 0, 0, 1.02;
     st.active.o = core::Vec3<double>(120.5, -33.25, 7.125);
     st.active.rm = core::Quat<double>(0.9999, 0.01, -0.005, 0.002).normalized();
+    st.output = OutputQuality{false, 0.75, 12.5};
     return st;
   }
   std::filesystem::path dir_;
@@ -65,6 +66,10 @@ TEST_F(CalibrationStoreTest, SavedCalibrationLoadsBack) {
   EXPECT_LT((p.model.o - st.active.o).norm(), 1e-9);
   EXPECT_LT(p.model.rm.angularDistance(st.active.rm), 1e-9);
   EXPECT_EQ(again.persisted().cal_id, 3u);
+  // What the records carried survives a restart (before: aligned and the configured noise).
+  EXPECT_FALSE(p.output.aligned);
+  EXPECT_EQ(p.output.sigma_f_nT, 0.75);
+  EXPECT_EQ(p.output.sigma_enu_nT, 12.5);
 }
 
 TEST_F(CalibrationStoreTest, CorruptFileIsRefusedAndLeftUntouched) {

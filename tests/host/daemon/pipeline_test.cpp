@@ -20,6 +20,7 @@
 #include "magvec/host/daemon/lcm_codec.hpp"
 #include "magvec/host/daemon/replay.hpp"
 #include "magvec/host/daemon/sim_setup.hpp"
+#include "magvec/host/hil/calibrators.hpp"
 #include "magvec/host/hil/hil_session.hpp"
 
 namespace magvec::host::daemon {
@@ -165,8 +166,8 @@ TEST(DaemonConfig, EmptyFileEqualsTheEmbeddedDefault) {
   EXPECT_EQ(dk.mode, ek.mode);
   EXPECT_EQ(dk.start_on_boot, ek.start_on_boot);
   EXPECT_EQ(dk.auto_accept, ek.auto_accept);
-  EXPECT_EQ(dk.noise_nT, ek.noise_nT);
-  EXPECT_EQ(dk.attitude_noise_deg, ek.attitude_noise_deg);
+  EXPECT_EQ(std::isnan(dk.noise_nT), std::isnan(ek.noise_nT));
+  EXPECT_EQ(std::isnan(dk.attitude_noise_deg), std::isnan(ek.attitude_noise_deg));
   EXPECT_EQ(dk.validation_samples, ek.validation_samples);
   EXPECT_EQ(dk.validation_max_rms_factor, ek.validation_max_rms_factor);
   EXPECT_EQ(dk.validation_min_rms_nT, ek.validation_min_rms_nT);
@@ -210,11 +211,11 @@ TEST(DaemonPipeline, SameRecordsAsTheHilHarnessThroughLcmMessages) {
   const Config c = fast_config("li");
   // HIL harness: its own calibrator, started at the first step.
   using LiCal = core::BatchLiCalibrator<double, 512>;
-  core::BatchLiCalibratorConfig<double> lc;
-  lc.batch.mag_noise_nT = c.calibration.noise_nT;
-  lc.batch.attitude_noise_deg = c.calibration.attitude_noise_deg;
-  lc.min_samples = c.calibration.li_min_samples;
-  auto cal = std::make_unique<LiCal>(lc);
+  hil::CalibratorSpec spec;
+  spec.noise_nT = c.calibration.noise_nT;
+  spec.attitude_noise_deg = c.calibration.attitude_noise_deg;
+  spec.li_min_samples = c.calibration.li_min_samples;
+  auto cal = std::make_unique<LiCal>(hil::li_config(spec));
   VectorSink hil_sink;
   hil::HilConfig hc = hil_config(c);
   hc.start_calibration = true;
@@ -278,7 +279,7 @@ class DaemonReplay : public ::testing::Test {
       if (i == steps / 2) {  // SIGHUP-like new session, carrying the active calibration over
         const CalibrationStatus st = d.ep.pipeline()->status();
         d.event(session_start_event(4, fast_config_text("ekf")));
-        d.event(set_active_event(5, st.active, st.cal_id));
+        d.event(set_active_event(5, st.active, st.cal_id, 0.0, st.output));
       }
       EXPECT_TRUE(front->rig().step());
       front->poll(d);

@@ -60,7 +60,7 @@ TEST(Session, ReloadCarriesTheActiveCalibrationAndRestartsOneInProgress) {
   core::SensorModel<double> m;
   m.o = core::Vec3<double>(5, 6, 7);
   ep.apply(session_start_event(1, ""));
-  ep.apply(set_active_event(2, m, 3, 0.02));
+  ep.apply(set_active_event(2, m, 3, 0.02, OutputQuality{true, 0.8, 15.0}));
   std::int64_t seq = 10;
   PersistedCalibration persisted;  // a different persisted calibration: not what a reload installs
   persisted.present = true;
@@ -71,6 +71,10 @@ TEST(Session, ReloadCarriesTheActiveCalibrationAndRestartsOneInProgress) {
   EXPECT_EQ(p.events[2].cal_id, 3);
   EXPECT_DOUBLE_EQ(p.events[2].o_nT[0], 5.0);
   EXPECT_DOUBLE_EQ(p.events[2].time_offset_s, 0.02);
+  const OutputQuality carried = output_quality_from(p.events[2]);
+  EXPECT_TRUE(carried.aligned);
+  EXPECT_EQ(carried.sigma_f_nT, 0.8);
+  EXPECT_EQ(carried.sigma_enu_nT, 15.0);
   EXPECT_FALSE(p.calibration_restarted);
   // Collecting: starts again in the new session.
   ep.apply(start_calibration_event(3));

@@ -263,12 +263,14 @@ TEST(SolveResultEvent, CarriesAlignmentAndAttitudeNoise) {
   r.ok = true;
   r.aligned = false;
   r.attitude_noise_deg = 0.0375f;
+  r.mag_noise_nT = 2.71828f;
   r.model.o = core::Vec3<double>(1.5, -2.0, 3.25);
   const SolveResult back = solve_result_from(solve_result_event(9, r));
   EXPECT_EQ(back.ticket, 3u);
   EXPECT_TRUE(back.ok);
   EXPECT_FALSE(back.aligned);
   EXPECT_EQ(back.attitude_noise_deg, 0.0375f);
+  EXPECT_EQ(back.mag_noise_nT, 2.71828f);
   EXPECT_EQ(back.model.o, r.model.o);
 
   SolveResult refused;
@@ -284,6 +286,34 @@ TEST(SolveResultEvent, CarriesAlignmentAndAttitudeNoise) {
   const SolveResult old_back = solve_result_from(old);
   EXPECT_TRUE(old_back.aligned);
   EXPECT_TRUE(std::isnan(old_back.attitude_noise_deg));
+  EXPECT_TRUE(std::isnan(old_back.mag_noise_nT));
+
+  // A corrupt or hand-edited log never installs a negative, zero or non-numeric figure.
+  magvec_lcm::pipeline_event bad = solve_result_event(12, r);
+  bad.config_toml = "aligned = true\nattitude_noise_deg = -1\nmag_noise_nT = x\n";
+  const SolveResult bad_back = solve_result_from(bad);
+  EXPECT_TRUE(std::isnan(bad_back.attitude_noise_deg));
+  EXPECT_TRUE(std::isnan(bad_back.mag_noise_nT));
+}
+
+// SET_ACTIVE carries the installed calibration's alignment and 1-sigmas bit for bit (a replayed
+// or reloaded calibration gives the records the live one gave); old logs: aligned, not known.
+TEST(SetActiveEvent, CarriesTheOutputQuality) {
+  const OutputQuality q{false, 0.1 + 0.2, 1.0 / 3.0};
+  const OutputQuality back =
+      output_quality_from(set_active_event(1, core::SensorModel<double>{}, 4, 0.01, q));
+  EXPECT_FALSE(back.aligned);
+  EXPECT_EQ(back.sigma_f_nT, q.sigma_f_nT);
+  EXPECT_EQ(back.sigma_enu_nT, q.sigma_enu_nT);
+  magvec_lcm::pipeline_event old = set_active_event(2, core::SensorModel<double>{}, 4);
+  old.config_toml.clear();
+  const OutputQuality old_back = output_quality_from(old);
+  EXPECT_TRUE(old_back.aligned);
+  EXPECT_TRUE(std::isnan(old_back.sigma_f_nT));
+  EXPECT_TRUE(std::isnan(old_back.sigma_enu_nT));
+  old.config_toml = "sigma_f_nT = inf\nsigma_enu_nT = -3\n";
+  EXPECT_TRUE(std::isnan(output_quality_from(old).sigma_f_nT));
+  EXPECT_TRUE(std::isnan(output_quality_from(old).sigma_enu_nT));
 }
 
 }  // namespace

@@ -4,6 +4,7 @@
 
 #include <array>
 #include <cstdint>
+#include <limits>
 
 #include "magvec/hal/status.hpp"
 
@@ -16,8 +17,11 @@ struct OutputRecord {
   double f_nT{0};                  // |h_s|, calibrated total field
   double sigma_f_nT{0};            // 1-sigma of f_nT from the active calibration
   std::array<double, 3> h_n_nT{};  // East, North, Up; valid only with the attitude flag set
-  std::uint32_t flags{0};          // defined by the SensorLoop (attitude valid, rejected, ...)
-  std::uint32_t cal_id{0};         // identifier of the calibration that produced h_s
+  // 1-sigma per E/N/U component from the active calibration (NaN when h_n is not an E/N/U
+  // estimate: no attitude, or the calibration is not aligned to the INS).
+  double sigma_enu_nT{std::numeric_limits<double>::quiet_NaN()};
+  std::uint32_t flags{0};   // defined by the SensorLoop (attitude valid, rejected, ...)
+  std::uint32_t cal_id{0};  // identifier of the calibration that produced h_s
 };
 
 class RecordSink {

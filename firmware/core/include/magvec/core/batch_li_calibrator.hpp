@@ -144,6 +144,8 @@ class BatchLiCalibrator {
     r.attitude_noise_deg = static_cast<float>(result_.noise.estimated && result_.noise.has_attitude
                                                   ? result_.noise.attitude_deg
                                                   : cfg_.batch.attitude_noise_deg);
+    r.mag_noise_nT = static_cast<float>(result_.noise.estimated ? result_.noise.mag_nT
+                                                                : cfg_.batch.mag_noise_nT);
     return r;
   }
 

@@ -171,7 +171,12 @@ class EkfCalibrator {
     }
     *out = model;
     // Without the alignment step W is known only up to a rotation and Rm = I: not aligned.
-    return CalibratorSolve{true, 0, aligned_};
+    CalibratorSolve r{true, 0, aligned_};
+    r.mag_noise_nT = static_cast<float>(ekf_.noise_nT());
+    // The alignment fit's residual (relative to F) as the attitude noise: it also holds the
+    // magnetometer noise over F, so the vector check's floor is conservative, never too tight.
+    if (aligned_) r.attitude_noise_deg = static_cast<float>(rad_to_deg(align_.residual_rms));
+    return r;
   }
 
   // --- diagnostics ------------------------------------------------------------------------------

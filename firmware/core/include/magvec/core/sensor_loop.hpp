@@ -105,6 +105,9 @@ struct CalibratorSolve {
   // The INS attitude noise 1-sigma the solve used or estimated (NaN: the loop's configured one);
   // sets the floor of the held-out vector check.
   float attitude_noise_deg{std::numeric_limits<float>::quiet_NaN()};
+  // The magnetometer noise 1-sigma per axis the solve used or estimated from its data (NaN: the
+  // loop's configured one); sets the held-out intensity bound and the floor of sigma_f.
+  float mag_noise_nT{std::numeric_limits<float>::quiet_NaN()};
 };
 
 template <typename Scalar>
@@ -125,6 +128,9 @@ struct OutputRecord {
   std::uint32_t flags{0};
   std::uint32_t cal_id{0};  // 0 = uncalibrated; increments with every applied calibration
   Scalar sigma_f_nT{0};     // 1-sigma of the intensity (noise + calibration uncertainty)
+  // 1-sigma per axis of h_n (noise, attitude noise and calibration error together); NaN when
+  // h_n is not an E/N/U estimate (no attitude, or kOutNotAligned).
+  Scalar sigma_enu_nT{std::numeric_limits<Scalar>::quiet_NaN()};
 };
 
 struct LoopHealth {
@@ -141,7 +147,10 @@ struct LoopHealth {
 
 template <typename Scalar>
 struct LoopConfig {
-  Scalar noise_nT{1};  // magnetometer noise 1-sigma (sets validation bound, sigma_f)
+  // Magnetometer noise 1-sigma per axis (the held-out intensity bound and the floor of sigma_f).
+  // NaN: not known; each candidate is then judged with the noise its solve estimated
+  // (CalibratorSolve::mag_noise_nT), and records carry NaN sigma_f until a calibration applies.
+  Scalar noise_nT{1};
   std::uint32_t validation_samples{200};
   Scalar validation_max_rms_factor{3};  // accept if held-out intensity RMS <= factor * noise ...
   Scalar validation_min_rms_nT{1};      // ... or <= this floor
@@ -151,7 +160,7 @@ struct LoopConfig {
   // its E/N/U field about their mean must be within factor * sqrt(noise^2 + (F sigma_att)^2)
   // (a wrong Rm turns with the platform; the true field does not). sigma_att: INS attitude
   // noise 1-sigma (the solve's figure when it gives one, CalibratorSolve); F: the mean held-out
-  // intensity.
+  // intensity. NaN: not known (the solve's figure, or no vector check without one).
   Scalar attitude_noise_deg{Scalar(0.05)};
   Scalar validation_max_vector_rms_factor{3};
   // The owner runs the calibrator's solve and hands the result to install_solve() (see the top).
@@ -160,6 +169,8 @@ struct LoopConfig {
 
 template <typename Scalar, typename Calibrator>
 class SensorLoop {
+  static constexpr Scalar kNaN = std::numeric_limits<Scalar>::quiet_NaN();
+
  public:
   SensorLoop(Calibrator& calibrator, const LoopConfig<Scalar>& config) noexcept
       : calibrator_(calibrator), config_(config) {}
@@ -168,20 +179,26 @@ class SensorLoop {
   // calibration gets an id above every id seen so far, so reverting to an older calibration never
   // lets a later, different one reuse an id that records already carry.
   // aligned: the model's Rm is an estimate (records are flagged kOutNotAligned otherwise);
-  // sigma_f_nT: the 1-sigma of |h| the calibration achieved (NaN: the configured noise).
+  // sigma_f_nT, sigma_enu_nT: the 1-sigma of |h| and of each E/N/U component the calibration
+  // achieved (NaN: not known; sigma_f then falls back to the configured noise).
   void set_active(const SensorModel<Scalar>& model, std::uint32_t cal_id, bool aligned = true,
-                  Scalar sigma_f_nT = std::numeric_limits<Scalar>::quiet_NaN()) noexcept {
+                  Scalar sigma_f_nT = std::numeric_limits<Scalar>::quiet_NaN(),
+                  Scalar sigma_enu_nT = std::numeric_limits<Scalar>::quiet_NaN()) noexcept {
     active_.set_model(model);
     cal_id_ = cal_id;
     if (cal_id > max_cal_id_) max_cal_id_ = cal_id;
     active_aligned_ = aligned;
-    active_sigma_f_ =
-        std::isfinite(sigma_f_nT) ? std::fmax(sigma_f_nT, config_.noise_nT) : config_.noise_nT;
+    // fmax ignores a NaN operand: the known one of the two, NaN only when neither is known.
+    active_sigma_f_ = std::fmax(sigma_f_nT, config_.noise_nT);
+    active_sigma_enu_ = aligned ? std::fmax(sigma_enu_nT, active_sigma_f_) : kNaN;
   }
   bool active_aligned() const noexcept { return active_aligned_ && cal_id_ != 0; }
   // The 1-sigma of |h| in the records: the held-out intensity RMS of the applied calibration
   // against the scalar reference (noise and calibration error together), never below the noise.
   Scalar active_sigma_f_nT() const noexcept { return active_sigma_f_; }
+  // The 1-sigma per E/N/U component of an applied aligned calibration: the held-out E/N/U
+  // scatter, never below sqrt(sigma_f^2 + (F sigma_att)^2) (NaN when not aligned).
+  Scalar active_sigma_enu_nT() const noexcept { return active_sigma_enu_; }
   const SensorModel<Scalar>& active_model() const noexcept { return active_.model(); }
   std::uint32_t cal_id() const noexcept { return cal_id_; }
 
@@ -248,6 +265,7 @@ class SensorLoop {
     rec.sigma_f_nT = active_sigma_f_;
     if (r_bn != nullptr) {
       rec.h_n_nT = Compensator<Scalar>::to_nav(c.h_b, *r_bn);
+      if (cal_id_ != 0 && active_aligned_) rec.sigma_enu_nT = active_sigma_enu_;
     } else {
       rec.flags |= kOutNoAttitude;
       ++health_.no_attitude;
@@ -303,6 +321,9 @@ class SensorLoop {
     candidate_att_noise_deg_ = std::isfinite(r.attitude_noise_deg)
                                    ? static_cast<Scalar>(r.attitude_noise_deg)
                                    : config_.attitude_noise_deg;
+    // The configured noise overrides; without one, the noise the solve estimated from its data.
+    candidate_noise_ =
+        std::isfinite(config_.noise_nT) ? config_.noise_nT : static_cast<Scalar>(r.mag_noise_nT);
     validation_count_ = 0;
     sum_sq_candidate_ = 0;
     missing_reference_ = 0;
@@ -342,32 +363,42 @@ class SensorLoop {
     const Scalar rms_c = std::sqrt(sum_sq_candidate_ / n);
     const Scalar rms_a = std::sqrt(sum_sq_active_ / n);
     last_validation_rms_ = rms_c;
-    const Scalar bound = std::fmax(config_.validation_max_rms_factor * config_.noise_nT,
+    const Scalar bound = std::fmax(config_.validation_max_rms_factor * candidate_noise_,
                                    config_.validation_min_rms_nT);
     const bool better = cal_id_ == 0 || !config_.validate_against_active || rms_c <= rms_a;
     if (rms_c > bound || !better) {
       fail(CalFailure::kValidationFailed, 0);
       return;
     }
+    // sigma_f: the held-out intensity RMS (noise and calibration error), never below the noise.
+    const Scalar sigma_f = std::fmax(rms_c, candidate_noise_);
+    // Attitude noise seen as field: F sigma_att (NaN when the attitude noise is not known).
+    const Scalar att = deg_to_rad(candidate_att_noise_deg_) * (sum_f_ / n);
     last_vector_rms_ = std::numeric_limits<Scalar>::quiet_NaN();
     if (2 * vector_count_ >= validation_count_ && vector_count_ >= 2) {
       const Scalar m = static_cast<Scalar>(vector_count_);
       const Vec3<Scalar> mean = vector_sum_ / m;
       const Scalar var = ((vector_sum_sq_ / m) - mean.cwiseProduct(mean)).sum() / Scalar(3);
       last_vector_rms_ = std::sqrt(std::fmax(var, Scalar(0)));
-      const Scalar f = sum_f_ / n;
-      const Scalar att = deg_to_rad(candidate_att_noise_deg_) * f;
-      const Scalar floor = std::sqrt(config_.noise_nT * config_.noise_nT + att * att);
+      const Scalar floor = std::sqrt(candidate_noise_ * candidate_noise_ + att * att);
       const Scalar vector_bound = std::fmax(config_.validation_max_vector_rms_factor * floor,
                                             config_.validation_min_rms_nT);
-      if (last_vector_rms_ > vector_bound) {
+      // No floor (neither a configured nor an estimated attitude noise): nothing to judge by.
+      if (std::isfinite(floor) && last_vector_rms_ > vector_bound) {
         fail(CalFailure::kVectorValidationFailed, 0);
         return;
       }
     }
     active_ = candidate_;
     active_aligned_ = candidate_aligned_;
-    active_sigma_f_ = std::fmax(rms_c, config_.noise_nT);
+    active_sigma_f_ = sigma_f;
+    // Per E/N/U axis: the held-out scatter measures noise, attitude noise and a wrong Rm
+    // together; it is never taken below the intensity's sigma and the attitude noise (a short
+    // held-out window with little motion understates both). Without a check (too few samples
+    // with attitude) the floor alone.
+    active_sigma_enu_ = candidate_aligned_
+                            ? std::fmax(last_vector_rms_, std::sqrt(sigma_f * sigma_f + att * att))
+                            : kNaN;
     cal_id_ = ++max_cal_id_;
     ++health_.calibrations_applied;
     state_ = CalState::kApplied;
@@ -400,6 +431,8 @@ class SensorLoop {
   bool candidate_aligned_{false};
   Scalar candidate_att_noise_deg_{0};
   Scalar active_sigma_f_{config_.noise_nT};
+  Scalar active_sigma_enu_{kNaN};
+  Scalar candidate_noise_{config_.noise_nT};
   Scalar sum_f_{0};
   std::uint32_t vector_count_{0};
   Vec3<Scalar> vector_ref_ = Vec3<Scalar>::Zero();

@@ -50,6 +50,7 @@ hal::OutputRecord to_hal_record(const core::OutputRecord<Scalar>& r) noexcept {
   }
   o.f_nT = dropout ? kNaN : static_cast<double>(r.intensity_nT);
   o.sigma_f_nT = dropout ? kNaN : static_cast<double>(r.sigma_f_nT);
+  o.sigma_enu_nT = no_att ? kNaN : static_cast<double>(r.sigma_enu_nT);
   o.flags = r.flags;
   o.cal_id = r.cal_id;
   return o;

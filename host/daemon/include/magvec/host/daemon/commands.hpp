@@ -15,8 +15,9 @@ namespace magvec::host::daemon {
 struct CommandActions {
   std::function<void()> start_calibration;                // START_CALIBRATION pipeline event
   std::function<bool(const CalibrationStatus&)> persist;  // write cal.json; false on failure
-  // SET_ACTIVE pipeline event (model, cal_id, time_offset_s)
-  std::function<void(const core::SensorModel<double>&, std::uint32_t, double)> set_active;
+  // SET_ACTIVE pipeline event (model, cal_id, time_offset_s, output quality)
+  std::function<void(const core::SensorModel<double>&, std::uint32_t, double, const OutputQuality&)>
+      set_active;
 };
 
 struct CommandContext {

@@ -66,8 +66,10 @@ struct CalibrationConfig {
   std::string mode{"li"};  // li | ekf | none
   bool start_on_boot{true};
   bool auto_accept{true};  // persist a calibration as soon as the loop validated and applied it
-  double noise_nT{0.3};
-  double attitude_noise_deg{0.015};
+  // Known noise figures (magnetometer per axis, INS per angle, 1-sigma); nan: the calibrator
+  // estimates them from its data, and validation judges each candidate by its estimate.
+  double noise_nT{std::numeric_limits<double>::quiet_NaN()};
+  double attitude_noise_deg{std::numeric_limits<double>::quiet_NaN()};
   std::uint32_t validation_samples{200};
   double validation_max_rms_factor{3};
   double validation_min_rms_nT{1};

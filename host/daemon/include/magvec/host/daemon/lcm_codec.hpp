@@ -39,7 +39,10 @@ core::SensorModel<double> model_from_arrays(const double w[9], const double o[3]
 magvec_lcm::pipeline_event session_start_event(std::int64_t sequence, const std::string& config);
 magvec_lcm::pipeline_event set_active_event(std::int64_t sequence,
                                             const core::SensorModel<double>& model,
-                                            std::uint32_t cal_id, double time_offset_s = 0);
+                                            std::uint32_t cal_id, double time_offset_s = 0,
+                                            const OutputQuality& output = OutputQuality{});
+// The output quality a SET_ACTIVE event carries (logs written before it existed: aligned, NaN).
+OutputQuality output_quality_from(const magvec_lcm::pipeline_event& e) noexcept;
 magvec_lcm::pipeline_event start_calibration_event(std::int64_t sequence);
 magvec_lcm::pipeline_event solve_on_worker_event(std::int64_t sequence);
 magvec_lcm::pipeline_event solve_result_event(std::int64_t sequence, const SolveResult& r);

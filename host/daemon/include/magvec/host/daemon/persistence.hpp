@@ -17,6 +17,7 @@ struct PersistedCalibration {
   core::SensorModel<double> model{};
   std::uint32_t cal_id{0};
   double time_offset_s{0};  // cal.json time_offset_s
+  OutputQuality output{};   // cal.json output (absent: aligned, sigmas not known)
 };
 
 class CalibrationStore {

@@ -12,6 +12,7 @@
 #include <memory>
 #include <string>
 
+#include "calibration/calibration_file.hpp"
 #include "magvec/core/sensor_loop.hpp"
 #include "magvec/core/sensor_model.hpp"
 #include "magvec/hal/attitude_source.hpp"
@@ -31,6 +32,7 @@ struct CalibrationStatus {
   double validation_rms_nT{0};
   std::uint32_t cal_id{0};
   core::SensorModel<double> active{};
+  OutputQuality output{};  // what the records carry with `active` (alignment, 1-sigmas)
 };
 
 // A solve handed off the acquisition path (see Pipeline::take_solve_job).
@@ -40,6 +42,7 @@ struct SolveResult {
   std::uint8_t code{0};  // the calibrator's refusal code when !ok
   bool aligned{true};    // CalibratorSolve::aligned: the candidate's Rm is an estimate
   float attitude_noise_deg{std::numeric_limits<float>::quiet_NaN()};  // the solve's, NaN: none
+  float mag_noise_nT{std::numeric_limits<float>::quiet_NaN()};        // the solve's, NaN: none
   core::SensorModel<double> model{};
 };
 // Self-contained (owns a copy of the calibrator's data): may run on any thread, and after the
@@ -66,8 +69,10 @@ class Pipeline {
   virtual void override_time_offset_s(double offset_s) noexcept = 0;
   virtual double time_offset_s() const noexcept = 0;
   virtual void start_calibration() noexcept = 0;
-  virtual void set_active(const core::SensorModel<double>& model,
-                          std::uint32_t cal_id) noexcept = 0;
+  // output: the calibration's alignment and 1-sigmas as validated when it was applied (NaN
+  // sigmas: not known; the configured noise then stands in for sigma_f).
+  virtual void set_active(const core::SensorModel<double>& model, std::uint32_t cal_id,
+                          const OutputQuality& output) noexcept = 0;
 
   // Solving off the acquisition path (magvecd's worker thread). With set_external_solve(true) the
   // loop does not solve itself: once it is solving, take_solve_job() returns the job once (empty

@@ -7,7 +7,9 @@
 //   none  NullCalibrator: outputs with the active calibration, never calibrates.
 #pragma once
 
+#include <cmath>
 #include <cstddef>
+#include <limits>
 #include <memory>
 #include <stdexcept>
 #include <string>
@@ -22,12 +24,15 @@ namespace magvec::host::hil {
 using LiCalibrator = core::BatchLiCalibrator<double, 512>;
 using EkfLoopCalibrator = core::EkfCalibrator<double, 256>;
 
+// Noise figures: NaN (the default) means not known, so the calibrator estimates them from its
+// data (a survey team rarely knows them); a given figure overrides. li estimates both unless both
+// are given.
 struct CalibratorSpec {
-  std::string mode{"li"};           // li | ekf | none
-  double noise_nT{1.0};             // magnetometer noise 1-sigma the calibrator weights with
-  double attitude_noise_deg{0.01};  // INS attitude noise 1-sigma (li)
-  std::size_t li_min_samples{0};    // li: samples before a solve (0: the calibrator's default)
-  bool ekf_align{true};             // ekf: fit the misalignment after the filter
+  std::string mode{"li"};                                     // li | ekf | none
+  double noise_nT{std::numeric_limits<double>::quiet_NaN()};  // magnetometer noise 1-sigma
+  double attitude_noise_deg{std::numeric_limits<double>::quiet_NaN()};  // INS attitude (li)
+  std::size_t li_min_samples{0};  // li: samples before a solve (0: the calibrator's default)
+  bool ekf_align{true};           // ekf: fit the misalignment after the filter
 };
 
 inline bool is_calibrator_mode(const std::string& mode) {
@@ -40,15 +45,19 @@ inline constexpr bool kCalibrates = !std::is_same_v<Calibrator, NullCalibrator>;
 
 inline core::BatchLiCalibratorConfig<double> li_config(const CalibratorSpec& spec) {
   core::BatchLiCalibratorConfig<double> lc;
-  lc.batch.mag_noise_nT = spec.noise_nT;
-  lc.batch.attitude_noise_deg = spec.attitude_noise_deg;
+  lc.batch.estimate_noise =
+      !(std::isfinite(spec.noise_nT) && std::isfinite(spec.attitude_noise_deg));
+  // Given figures (or the defaults) are the estimator's starting values.
+  if (std::isfinite(spec.noise_nT)) lc.batch.mag_noise_nT = spec.noise_nT;
+  if (std::isfinite(spec.attitude_noise_deg)) lc.batch.attitude_noise_deg = spec.attitude_noise_deg;
   if (spec.li_min_samples > 0) lc.min_samples = spec.li_min_samples;
   return lc;
 }
 
 inline core::EkfCalibratorConfig<double> ekf_config(const CalibratorSpec& spec) {
   core::EkfCalibratorConfig<double> ec;
-  ec.ekf.noise_sigma_nT = spec.noise_nT;
+  ec.ekf.estimate_noise = !std::isfinite(spec.noise_nT);
+  if (std::isfinite(spec.noise_nT)) ec.ekf.noise_sigma_nT = spec.noise_nT;
   ec.align = spec.ekf_align;
   return ec;
 }

@@ -1,6 +1,6 @@
 // hal::RecordSink writing the `magvec run` / `magvec apply` record CSV
 // (docs/conventions.md#file-formats):
-//   t_s,hx_nT,hy_nT,hz_nT,hsx_nT,hsy_nT,hsz_nT,F_nT,hE_nT,hN_nT,hU_nT,flags,cal_id,sigma_F_nT
+//   t_s,hx_nT,hy_nT,hz_nT,hsx_nT,hsy_nT,hsz_nT,F_nT,hE_nT,hN_nT,hU_nT,flags,cal_id,sigma_F_nT,sigma_ENU_nT
 // hx..hz are the raw reading; hs* the compensated orthogonal sensor frame; hE/hN/hU the ENU
 // components (nan without attitude); nan marks values that do not exist for a record.
 // Host only: the file is written atomically by host::io::CsvWriter on commit().

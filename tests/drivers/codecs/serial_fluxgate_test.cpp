@@ -266,5 +266,23 @@ TEST(SerialFluxgate, MagnetometerSourceOverSerialPort) {
   EXPECT_EQ(src.counters().samples, 2u);
 }
 
+// A rejected line is the caller's to know (the HAL contract, as the ADC source returns kCrcError
+// for a bad frame): read() returns the rejection, and the line after it comes with the next call.
+TEST(SerialFluxgate, RejectedLinesAreReturnedNotSkipped) {
+  FakeSerial port;
+  const char* text = "$MAG,1,2,3*00\r\n$MAG,1,x,3\r\n$MAG,4,5,6*50\r\n";
+  port.data.assign(text, text + std::strlen(text));
+  SerialFluxgate<AsciiLineDecoder> src(port, port, AsciiLineDecoder(AsciiLineConfig{}), 1000);
+  hal::MagnetometerSample s;
+  EXPECT_EQ(src.read(s, 100), hal::Status::kCrcError);
+  EXPECT_EQ(src.read(s, 100), hal::Status::kMalformed);
+  ASSERT_EQ(src.read(s, 100), hal::Status::kOk);
+  EXPECT_DOUBLE_EQ(s.m_nT[0], 4);
+  EXPECT_EQ(src.read(s, 100), hal::Status::kTimeout);
+  EXPECT_EQ(src.counters().crc_errors, 1u);
+  EXPECT_EQ(src.counters().malformed, 1u);
+  EXPECT_EQ(src.counters().samples, 1u);
+}
+
 }  // namespace
 }  // namespace magvec::drivers

@@ -198,15 +198,12 @@ std::vector<FaultCase> cases() {
        Touches::kMagnetometer,
        "skipped by the decoder; every record unchanged"});
   v.push_back(
-      {"serial line checksum wrong",
-       "bad-checksum=2e-3",
-       MagLink::kSerial,
+      {"serial line checksum wrong", "bad-checksum=2e-3", MagLink::kSerial,
        [](ScenarioConfig&, SimRigConfig& rc) { rc.serial.faults.bad_checksum_probability = 2e-3; },
        [](Session& s, const ExpectedCounts&) { return s.rig().serial().injected().bad_checksums; },
-       {"records", "loop.samples", "mag.samples", "mag.crc_errors", "mag_missing"},
-       Touches::kMagnetometer,
-       "no record; the next step counts it missing. NOT a read error: the serial source "
-       "skips the line inside read() (the ADC source returns kCrcError)"});
+       lost_sample, Touches::kMagnetometer,
+       "no record (read() returns kCrcError, as for an ADC frame); the next step counts it "
+       "missing"});
   v.push_back(
       {"serial fluxgate dropout (line not sent)",
        "dropout=2e-3 (serial)",

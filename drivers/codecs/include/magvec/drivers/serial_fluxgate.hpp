@@ -168,7 +168,11 @@ class SerialFluxgate final : public hal::MagnetometerSource {
   hal::Status read(hal::MagnetometerSample& out, std::uint32_t timeout_us) noexcept override {
     // Bounded work per call: at most kMaxChunks reads (the first may wait, the rest poll).
     for (int attempt = 0; attempt < kMaxChunks; ++attempt) {
-      if (take_from_buffer(out)) return hal::Status::kOk;
+      // A sample, or a line the decoder rejected (kCrcError, kMalformed, kOverflow): reported to
+      // the caller as the ADC source reports a bad frame; the bytes after it stay for the next
+      // call.
+      const hal::Status t = take_from_buffer(out);
+      if (t != hal::Status::kNoData) return t;
       std::size_t n = 0;
       const hal::Status s = port_.read(buf_, n, attempt == 0 ? timeout_us : 0);
       if (s != hal::Status::kOk && s != hal::Status::kTimeout && s != hal::Status::kNoData) {
@@ -181,7 +185,7 @@ class SerialFluxgate final : public hal::MagnetometerSource {
       pos_ = 0;
       len_ = n;
     }
-    return take_from_buffer(out) ? hal::Status::kOk : hal::Status::kNoData;
+    return take_from_buffer(out);
   }
   const hal::MagCounters& counters() const noexcept override {
     counters_ = decoder_.counters();
@@ -191,14 +195,16 @@ class SerialFluxgate final : public hal::MagnetometerSource {
   const Decoder& decoder() const noexcept { return decoder_; }
 
  private:
-  bool take_from_buffer(hal::MagnetometerSample& out) noexcept {
+  // kOk (a sample), kNoData (the buffer is used up) or the decoder's rejection of a line.
+  hal::Status take_from_buffer(hal::MagnetometerSample& out) noexcept {
     if constexpr (requires(Decoder d, hal::MagnetometerSample s) { d.pending(s); }) {
-      if (decoder_.pending(out)) return true;
+      if (decoder_.pending(out)) return hal::Status::kOk;
     }
     while (pos_ < len_) {
-      if (decoder_.push(buf_[pos_++], rx_t_us_, out) == hal::Status::kOk) return true;
+      const hal::Status s = decoder_.push(buf_[pos_++], rx_t_us_, out);
+      if (s != hal::Status::kNoData) return s;
     }
-    return false;
+    return hal::Status::kNoData;
   }
 
   hal::SerialPort& port_;

@@ -198,11 +198,10 @@ std::vector<CounterCheck> counter_checks(Session& session, const ExpectedCounts&
   add("loop.samples", "one per delivered sample", h.samples, e.mag_delivered);
   add("mag.crc_errors", spi ? "ADC frame CRC corrupted" : "serial line checksum wrong",
       mc.crc_errors, e.mag_rejected);
-  // The serial source rejects a bad line inside read() and goes on to the next one: the caller
-  // never sees the failure (counted by the driver only), unlike the ADS131M04 source, which
-  // returns kCrcError for the frame.
-  add("mag_read_errors", spi ? "rejected ADC frames (no record)" : "(serial: not surfaced)",
-      c.mag_read_errors, spi ? e.mag_rejected : 0);
+  // Both sources return the rejection from read() (kCrcError for an ADC frame or a serial line).
+  add("mag_read_errors",
+      spi ? "rejected ADC frames (no record)" : "rejected serial lines (no record)",
+      c.mag_read_errors, e.mag_rejected);
   add("mag.samples", "delivered samples", mc.samples, e.mag_delivered);
   add("mag_not_fresh", "simulator dropout (ADC DRDY bits clear)", c.mag_not_fresh, e.mag_not_fresh);
   add("loop.dropouts", "simulator dropout (NaN record, kOutDropout)", h.dropouts, e.mag_not_fresh);

@@ -8,6 +8,9 @@
 
 #include <cmath>
 #include <cstdint>
+#include <limits>
+#include <random>
+#include <set>
 #include <vector>
 
 #include "support/alloc_counter.hpp"
@@ -164,6 +167,62 @@ TEST(DevicePipeline, HalRecordsCarryNaNForValuesTheyDoNotHave) {
   EXPECT_EQ(c.records, 3u);
 }
 
+// NaN and inf at every input of the pipeline: a non-finite magnetometer value is a counted
+// dropout with NaN outputs; a non-finite attitude is refused by the buffer (att_rejected) and
+// never reaches a record; a non-finite scalar reference is no reference. No number of any record
+// is made from a non-finite input.
+TEST(DevicePipeline, NonFiniteInputsAreCountedAndNeverPropagated) {
+  constexpr double kInf = std::numeric_limits<double>::infinity();
+  constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+  IdleCalibrator<double> cal;
+  Pipe<double> p(cal, config<double>());
+  std::vector<hal::OutputRecord> out;
+  auto emit = [&](const core::OutputRecord<double>& r) {
+    out.push_back(pipeline::to_hal_record(r));
+  };
+  std::set<std::uint64_t> bad_mag;
+  std::uint64_t bad_att = 0;
+  std::uint64_t next_ins = 0;
+  for (int i = 0; i < 400; ++i) {
+    const std::uint64_t t = 100'000 + 5'000 * static_cast<std::uint64_t>(i);
+    while (next_ins + kLatencyUs <= t) {
+      hal::AttitudeSample a = ins_sample(next_ins);
+      if ((next_ins / 10'000) % 37 == 5) {
+        a.q_nb[(next_ins / 10'000) % 4] = (next_ins / 10'000) % 2 != 0 ? kNaN : kInf;
+        ++bad_att;
+      }
+      p.on_attitude(a, emit);
+      next_ins += 10'000;
+    }
+    hal::MagnetometerSample s = mag_sample(t);
+    if (i % 23 == 7) {
+      s.m_nT[static_cast<std::size_t>(i % 3)] = i % 2 != 0 ? kNaN : -kInf;
+      bad_mag.insert(t);
+    }
+    p.on_magnetometer(s, i % 19 == 3 ? kInf : kField.norm(), emit);
+  }
+  for (int k = 0; k < 20; ++k, next_ins += 10'000)
+    p.on_attitude(ins_sample(next_ins), emit);
+  p.flush(emit);
+  ASSERT_EQ(out.size(), 400u);
+  ASSERT_GT(bad_att, 5u);
+  for (const hal::OutputRecord& r : out) {
+    if (bad_mag.count(r.t_us) == 1) {
+      EXPECT_NE(r.flags & core::kOutDropout, 0u) << r.t_us;
+      EXPECT_TRUE(std::isnan(r.f_nT) && std::isnan(r.h_s_nT[0]) && std::isnan(r.h_n_nT[0]));
+      continue;
+    }
+    EXPECT_EQ(r.flags & core::kOutDropout, 0u) << r.t_us;
+    EXPECT_TRUE(std::isfinite(r.f_nT));
+    // Interpolated across the refused epoch (20 ms apart, within the buffer's gap limit).
+    ASSERT_EQ(r.flags & core::kOutNoAttitude, 0u) << r.t_us;
+    for (const double v : r.h_n_nT)
+      EXPECT_TRUE(std::isfinite(v));
+  }
+  EXPECT_EQ(p.loop().health().dropouts, bad_mag.size());
+  EXPECT_EQ(p.counters().att_rejected, bad_att);
+}
+
 struct RefusingSink final : hal::RecordSink {
   std::uint32_t calls{0};
   hal::Status emit(const hal::OutputRecord&) noexcept override {
@@ -203,6 +262,108 @@ TEST(DevicePipeline, InsReorderingIsNotAClockJump) {
   p.on_attitude(ins_sample(800'000), none);
   EXPECT_EQ(p.counters().att_time_jumps, 1u);
   EXPECT_EQ(p.core().buffer().size(), 1u);
+}
+
+// The spike screen (core SamplePipeline, docs/equations.md E-Spike) on a rotating stream with
+// sensor noise: every injected spike (one axis, 200 nT to 2 uT, either sign) is flagged and
+// counted, nothing else is; the flagged records keep their values.
+template <typename Scalar>
+void spikes_flagged_exactly(double noise_nT) {
+  IdleCalibrator<Scalar> cal;
+  Pipe<Scalar> p(cal, config<Scalar>());
+  std::vector<hal::OutputRecord> out;
+  auto emit = [&](const core::OutputRecord<Scalar>& r) {
+    out.push_back(pipeline::to_hal_record(r));
+  };
+  std::mt19937_64 rng(5);
+  std::normal_distribution<double> noise(0, noise_nT);
+  std::uniform_real_distribution<double> u(0, 1);
+  std::set<std::uint64_t> spiked;
+  std::uint64_t next_ins = 0;
+  for (int i = 0; i < 4000; ++i) {
+    const std::uint64_t t = 100'000 + 5'000 * static_cast<std::uint64_t>(i);
+    while (next_ins + kLatencyUs <= t) {
+      p.on_attitude(ins_sample(next_ins), emit);
+      next_ins += 10'000;
+    }
+    hal::MagnetometerSample s = mag_sample(t);
+    for (double& v : s.m_nT)
+      v += noise(rng);
+    if (i > 40 && u(rng) < 0.01) {
+      const auto axis = static_cast<std::size_t>(u(rng) * 3) % 3;
+      s.m_nT[axis] += (u(rng) < 0.5 ? -1 : 1) * (200 + 1800 * u(rng));
+      spiked.insert(t);
+    }
+    p.on_magnetometer(s, static_cast<Scalar>(kField.norm()), emit);
+  }
+  for (int k = 0; k < 20; ++k, next_ins += 10'000)
+    p.on_attitude(ins_sample(next_ins), emit);
+  p.flush(emit);
+  ASSERT_EQ(out.size(), 4000u);
+  ASSERT_GT(spiked.size(), 20u);
+  std::size_t flagged = 0;
+  for (const hal::OutputRecord& r : out) {
+    const bool spike = (r.flags & core::kOutSpike) != 0;
+    EXPECT_EQ(spike, spiked.count(r.t_us) == 1) << r.t_us;
+    if (spike) {
+      ++flagged;
+      EXPECT_TRUE(std::isfinite(r.f_nT));  // kept, flagged
+    }
+  }
+  EXPECT_EQ(flagged, spiked.size());
+  EXPECT_EQ(p.counters().spikes, spiked.size());
+  EXPECT_GT(p.counters().spike_screened, 3900u);
+}
+
+TEST(DevicePipeline, SpikesAreFlaggedAndCountedExactly) {
+  spikes_flagged_exactly<double>(0.3);  // fluxgate-class noise
+  spikes_flagged_exactly<double>(5.0);  // MEMS-class noise: the screen learns it
+  spikes_flagged_exactly<float>(0.3);
+}
+
+// A step of the field (a real jump, or the next attitude of a piecewise-constant run) moves every
+// later sample: it is not a spike. Noise-free data (RMS near zero) flag nothing either.
+TEST(DevicePipeline, StepsAndNoiseFreeDataAreNotSpikes) {
+  IdleCalibrator<double> cal;
+  Pipe<double> p(cal, config<double>());
+  std::size_t spikes = 0;
+  auto emit = [&](const core::OutputRecord<double>& r) {
+    spikes += (r.flags & core::kOutSpike) != 0 ? 1u : 0u;
+  };
+  std::uint64_t next_ins = 0;
+  for (int i = 0; i < 2000; ++i) {
+    const std::uint64_t t = 100'000 + 5'000 * static_cast<std::uint64_t>(i);
+    while (next_ins + kLatencyUs <= t) {
+      p.on_attitude(ins_sample(next_ins), emit);
+      next_ins += 10'000;
+    }
+    hal::MagnetometerSample s = mag_sample(t);
+    // Steps of 1 uT every 100 samples, in alternating directions, on top of the rotation.
+    s.m_nT[1] += 1000.0 * static_cast<double>((i / 100) % 2);
+    p.on_magnetometer(s, static_cast<double>(kField.norm()), emit);
+  }
+  p.flush(emit);
+  EXPECT_EQ(spikes, 0u);
+  EXPECT_EQ(p.counters().spikes, 0u);
+  EXPECT_GT(p.counters().spike_screened, 1900u);
+}
+
+// Off (spike_factor 0), or without a horizon (no next sample to judge against): nothing screened.
+TEST(DevicePipeline, SpikeScreenNeedsTheNextSample) {
+  for (const bool off : {true, false}) {
+    core::PipelineConfig<double> c = config<double>();
+    if (off) {
+      c.spike_factor = 0;
+    } else {
+      c.horizon_us = 0;
+    }
+    IdleCalibrator<double> cal;
+    Pipe<double> p(cal, c);
+    std::size_t n = 0;
+    feed_stream(p, 400, [&](const core::OutputRecord<double>&) { ++n; });
+    EXPECT_EQ(n, 400u);
+    EXPECT_EQ(p.counters().spike_screened, 0u) << off;
+  }
 }
 
 TEST(DevicePipeline, NoHeapAllocationPerEvent) {

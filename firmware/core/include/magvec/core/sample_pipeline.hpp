@@ -31,9 +31,18 @@
 //     k periods, 1.5 < k <= 10, k - 1 samples are missing (mag_missing).
 //   - A sample the device marked not fresh is a dropout (NaN, kOutDropout, never a device error);
 //     a device error is passed on (kOutDeviceError). Both still get their record, in order.
+//   - Spike screen: a sample is a spike when it stands out from BOTH its neighbours (the last
+//     sample that passed and the next one in the queue): its distance r from their time
+//     interpolation exceeds spike_factor times the running RMS of r AND the distance c between
+//     the neighbours (docs/equations.md E-Spike). A step (a real jump of the field, a new
+//     attitude of a piecewise-constant run) moves the next sample too, so c > r and it passes.
+//     The record is flagged kOutSpike and counted (spikes); the SensorLoop keeps it from the
+//     calibrator. The screen needs the next sample: a sample waits for it as for its attitude
+//     (within the horizon); one processed without it (horizon 0, flush) is not screened.
 // Header-only, Scalar-templated, fixed memory, noexcept, no heap.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
@@ -57,6 +66,13 @@ struct PipelineConfig {
   // soft-float double off the M4F's per-sample path.
   std::uint32_t mag_period_us{5'000};
   std::uint32_t ins_period_us{10'000};
+  // Spike screen: r > spike_factor * RMS(r) (0 switches it off). The RMS is learnt from the data
+  // (the first kSpikeWarmup screened samples, then a running mean with outliers clipped), so the
+  // screen follows the sensor's noise and the motion between samples, with no noise figure.
+  Scalar spike_factor{10};
+  // ... and r > spike_min_nT: below a nanotesla a lone jump is resolution and rounding (noise-free
+  // or heavily quantised data would otherwise have an RMS near zero), not a spike.
+  Scalar spike_min_nT{1};
 };
 
 struct PipelineCounters {
@@ -75,6 +91,8 @@ struct PipelineCounters {
   std::uint64_t extrapolated{0};     // records flagged kOutAttExtrapolated
   std::uint64_t queue_full{0};       // processed early because the queue was full
   std::uint64_t max_queued{0};       // deepest the queue has been
+  std::uint64_t spikes{0};           // records flagged kOutSpike
+  std::uint64_t spike_screened{0};   // samples the spike screen judged (had both neighbours)
 };
 
 template <typename Scalar, typename Calibrator, std::size_t BufferCapacity = 64,
@@ -139,7 +157,10 @@ class SamplePipeline {
         counters_.mag_missing += (s.t_us - mag_newest_us_ + p / 2) / p - 1;
       }
       // The pending samples belong to the old time base: out before the new one goes in.
-      if (s.t_us <= mag_newest_us_) flush(emit);
+      if (s.t_us <= mag_newest_us_) {
+        flush(emit);
+        have_prev_ = false;  // the spike screen's neighbour is of the old time base too
+      }
     }
     have_mag_ = true;
     mag_newest_us_ = s.t_us;
@@ -195,14 +216,69 @@ class SamplePipeline {
       const MagSample<Scalar>& f = queue_[head_];
       const bool bracketed = have_ins_ && ins_seen_us_ >= attitude_time_us(f.t_us);
       const bool expired = mag_newest_us_ - f.t_us >= config_.horizon_us;
-      if (!bracketed && !expired) return;
+      // The spike screen wants the next sample too (unless the horizon is up).
+      const bool next_in = count_ >= 2 || !(config_.spike_factor > 0);
+      if (!(bracketed && next_in) && !expired) return;
       process_front(emit);
     }
   }
 
+  static bool screenable(const MagSample<Scalar>& s) noexcept {
+    return !s.device_error && s.m_nT.allFinite();
+  }
+
+  // E-Spike: judges s against the last sample that passed and the next one in the queue.
+  bool is_spike(const MagSample<Scalar>& s) noexcept {
+    if (!(config_.spike_factor > 0) || !screenable(s)) return false;
+    const bool judged = have_prev_ && count_ >= 2 && [&] {
+      const MagSample<Scalar>& n = queue_[(head_ + 1) % QueueCapacity];
+      if (!screenable(n) || !(prev_t_us_ < s.t_us && s.t_us < n.t_us)) return false;
+      // Neighbours more than 10 periods apart are a gap: no judgement across it. Whole
+      // microseconds in 32 bits: no soft-float 64-bit conversion on the M4F.
+      const std::uint64_t span = n.t_us - prev_t_us_;
+      if (span > 10 * std::uint64_t{config_.mag_period_us > 0 ? config_.mag_period_us : 1})
+        return false;
+      const Scalar w = static_cast<Scalar>(static_cast<std::uint32_t>(s.t_us - prev_t_us_)) /
+                       static_cast<Scalar>(static_cast<std::uint32_t>(span));
+      const Vec3<Scalar> step = n.m_nT - prev_m_nT_;
+      spike_r2_ = (s.m_nT - prev_m_nT_ - w * step).squaredNorm();
+      spike_c2_ = step.squaredNorm();
+      return true;
+    }();
+    if (!judged) return false;
+    ++counters_.spike_screened;
+    const Scalar r2 = spike_r2_;
+    if (spike_warm_ < kSpikeWarmup) {
+      // The first samples give the start through their median (a spike among them must not
+      // inflate it): the median of r^2/E[r^2] (chi-square, 3 degrees of freedom, over 3) is 0.79.
+      spike_warmup_r2_[spike_warm_++] = r2;
+      if (spike_warm_ == kSpikeWarmup) {
+        Scalar* mid = spike_warmup_r2_ + kSpikeWarmup / 2;
+        std::nth_element(spike_warmup_r2_, mid, spike_warmup_r2_ + kSpikeWarmup);
+        spike_ms_ = *mid / Scalar(0.79);
+      }
+      return false;
+    }
+    const Scalar k2 = config_.spike_factor * config_.spike_factor;
+    const Scalar floor2 = config_.spike_min_nT * config_.spike_min_nT;
+    if (r2 > k2 * spike_ms_ && r2 > spike_c2_ && r2 > floor2) return true;
+    // Running mean square of r, each value clipped at 9x the mean (a step's large r barely
+    // moves it; a lasting rise of the noise is followed within a few hundred samples).
+    spike_ms_ += (std::fmin(r2, Scalar(9) * spike_ms_) - spike_ms_) / Scalar(64);
+    return false;
+  }
+
   template <typename Emit>
   void process_front(Emit& emit) noexcept {
-    const MagSample<Scalar> s = queue_[head_];
+    MagSample<Scalar> s = queue_[head_];
+    s.spike = is_spike(s);
+    if (s.spike) {
+      ++counters_.spikes;
+    } else if (screenable(s)) {
+      prev_m_nT_ = s.m_nT;
+      prev_t_us_ = s.t_us;
+      have_prev_ = true;
+    }
     head_ = (head_ + 1) % QueueCapacity;
     --count_;
     const std::uint64_t tq = attitude_time_us(s.t_us);
@@ -232,6 +308,16 @@ class SamplePipeline {
   std::uint64_t ins_seen_us_{0};
   bool have_mag_{false};
   bool have_ins_{false};
+  // Spike screen state.
+  static constexpr std::uint32_t kSpikeWarmup = 16;
+  Vec3<Scalar> prev_m_nT_ = Vec3<Scalar>::Zero();
+  std::uint64_t prev_t_us_{0};
+  bool have_prev_{false};
+  std::uint32_t spike_warm_{0};
+  Scalar spike_ms_{0};  // running mean square of r
+  Scalar spike_warmup_r2_[kSpikeWarmup]{};
+  Scalar spike_r2_{0};
+  Scalar spike_c2_{0};
 };
 
 }  // namespace magvec::core

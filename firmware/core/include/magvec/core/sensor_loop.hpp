@@ -50,6 +50,9 @@ enum OutputFlag : std::uint32_t {
   // a calibrator that cannot see the misalignment, e.g. the scalar EKF without its alignment
   // step): h_n is the field rotated with Rm = I, not an E/N/U estimate; |h| is unaffected.
   kOutNotAligned = 1u << 7,
+  // The sample stands out from both neighbours (a spike; SamplePipeline's spike screen): its
+  // values are kept, flagged; the calibrator never sees it.
+  kOutSpike = 1u << 8,
 };
 
 enum class CalState : std::uint8_t { kIdle, kCollecting, kSolving, kValidating, kApplied, kFailed };
@@ -116,6 +119,7 @@ struct MagSample {
   Vec3<Scalar> m_nT = Vec3<Scalar>::Zero();
   Scalar f_ref_nT = std::numeric_limits<Scalar>::quiet_NaN();  // scalar reference, NaN when none
   bool device_error{false};
+  bool spike{false};  // set by the pipeline's spike screen
 };
 
 template <typename Scalar>
@@ -269,6 +273,11 @@ class SensorLoop {
     } else {
       rec.flags |= kOutNoAttitude;
       ++health_.no_attitude;
+    }
+    if (s.spike) {
+      // Flagged, kept, and kept away from the calibration (collection and validation).
+      rec.flags |= kOutSpike;
+      return rec;
     }
     step_calibration(s, r_bn, &rec);
     return rec;

@@ -273,8 +273,13 @@ Config parse_config(const std::string& text, const std::string& source) {
   l.str("command_url", &c.lcm.command_url);
   if (!c.lcm.command_url.empty() && c.lcm.command_url == c.lcm.url)
     l.fail("command_url", "must differ from url (the daemon must not receive its own data)");
+  l.integer("raw_batch", &c.lcm.raw_batch, 1, kMaxRawBatch);
   Table ch = l.sub("channels");
   ch.str("raw_mag", &c.lcm.channels.raw_mag);
+  ch.str("raw_mag_batch", &c.lcm.channels.raw_mag_batch);
+  // One type per channel: a reader decodes by channel name.
+  if (c.lcm.channels.raw_mag_batch == c.lcm.channels.raw_mag)
+    ch.fail("raw_mag_batch", "must differ from raw_mag (another message type)");
   ch.str("attitude", &c.lcm.channels.attitude);
   ch.str("pipeline", &c.lcm.channels.pipeline);
   ch.str("output", &c.lcm.channels.output);

@@ -125,6 +125,7 @@ int Daemon::run() {
       sd_notify(0, "READY=1\nSTATUS=reload refused: invalid configuration");
     }
   }
+  flush_raw_batch();
   spdlog::info("stopping ({} samples)", mag_events_);
   ep_->flush();  // the samples still inside the fusion horizon get their records
   shutdown_persist();
@@ -137,30 +138,59 @@ int Daemon::run() {
 // ------------------------------------------------------------------ events
 
 void Daemon::on_attitude(const hal::AttitudeSample& a) {
+  flush_raw_batch();  // the samples read before it are fed before it, as without batching
   const magvec_lcm::attitude m = to_lcm(a);
   publisher_->publish(config_.lcm.channels.attitude, m);
   ep_->apply(m);
 }
 
 void Daemon::on_magnetometer(const hal::MagnetometerSample& s, double f_ref_nT) {
-  // Publish first, then feed the very message that was published.
-  const std::uint64_t t0 = mono_us();
-  const magvec_lcm::mag_sample m = to_lcm(s, f_ref_nT);
-  publisher_->publish(config_.lcm.channels.raw_mag, m);
-  ep_->apply(m);
-  const std::uint64_t dt = mono_us() - t0;
-  if (solve_in_flight_) {
-    ++samples_during_solve_;
-    if (dt > worst_sample_us_during_solve_) worst_sample_us_during_solve_ = dt;
-  } else if (dt > worst_sample_us_) {
-    worst_sample_us_ = dt;
-  }
-  last_t_us_ = s.t_us;
-  ++mag_events_;
+  feed_magnetometer(to_lcm(s, f_ref_nT));
   error_streak_start_us_ = 0;
 }
 
+void Daemon::feed_magnetometer(const magvec_lcm::mag_sample& m) {
+  if (config_.lcm.raw_batch <= 1) {
+    // Publish first, then feed the very message that was published.
+    const std::uint64_t t0 = mono_us();
+    publisher_->publish(config_.lcm.channels.raw_mag, m);
+    ep_->apply(m);
+    note_processing_us(mono_us() - t0);
+    last_t_us_ = static_cast<std::uint64_t>(m.t_us);
+    ++mag_events_;
+    return;
+  }
+  if (raw_batch_.samples.empty()) raw_batch_first_us_ = mono_us();
+  raw_batch_.samples.push_back(m);
+  if (raw_batch_.samples.size() >= config_.lcm.raw_batch) flush_raw_batch();
+}
+
+void Daemon::flush_raw_batch() {
+  if (raw_batch_.samples.empty()) return;
+  // Publish the batch, then feed the very samples it carries, in order.
+  const std::uint64_t t0 = mono_us();
+  raw_batch_.count = static_cast<std::int32_t>(raw_batch_.samples.size());
+  publisher_->publish(config_.lcm.channels.raw_mag_batch, raw_batch_);
+  for (const magvec_lcm::mag_sample& m : raw_batch_.samples)
+    ep_->apply(m);
+  note_processing_us(mono_us() - t0);
+  last_t_us_ = static_cast<std::uint64_t>(raw_batch_.samples.back().t_us);
+  mag_events_ += raw_batch_.samples.size();
+  raw_batch_.samples.clear();  // keeps the capacity: no allocation per batch
+  raw_batch_.count = 0;
+}
+
+void Daemon::note_processing_us(std::uint64_t dt_us) noexcept {
+  if (solve_in_flight_) {
+    ++samples_during_solve_;
+    if (dt_us > worst_sample_us_during_solve_) worst_sample_us_during_solve_ = dt_us;
+  } else if (dt_us > worst_sample_us_) {
+    worst_sample_us_ = dt_us;
+  }
+}
+
 void Daemon::on_read_error(hal::Status s) {
+  flush_raw_batch();
   if (ep_->pipeline() != nullptr) ep_->pipeline()->on_read_error();
   if (++read_errors_ <= 5) spdlog::warn("magnetometer read error: {}", hal::to_string(s));
   // A device that only fails (unplugged, powered off) is not healed by pinging the watchdog:
@@ -175,6 +205,7 @@ void Daemon::on_read_error(hal::Status s) {
 }
 
 void Daemon::event(const magvec_lcm::pipeline_event& e) {
+  flush_raw_batch();
   publisher_->publish(config_.lcm.channels.pipeline, e);
   ep_->apply(e);
 }
@@ -182,6 +213,9 @@ void Daemon::event(const magvec_lcm::pipeline_event& e) {
 // ------------------------------------------------------------------ sessions
 
 void Daemon::open_session(const Config& config, bool first) {
+  // The previous session's pending samples go out on its publisher and channel, fed to its
+  // pipeline before the new session's events.
+  if (publisher_) flush_raw_batch();
   auto publisher = std::make_unique<LcmPublisher>(config.lcm.url, config.lcm.channels.output);
   auto commands =
       std::make_unique<CommandLink>(command_url(config.lcm), config.lcm.channels.command,
@@ -196,6 +230,7 @@ void Daemon::open_session(const Config& config, bool first) {
   publisher_ = std::move(publisher);
   sink_.publisher = publisher_.get();
   commands_ = std::move(commands);
+  raw_batch_.samples.reserve(config.lcm.raw_batch);
   ++session_;
   solve_in_flight_ = false;
   spdlog::info("devices: {}; LCM {} (commands on {})", devices_->describe(), config.lcm.url,
@@ -217,6 +252,9 @@ void Daemon::loop_session() {
 
   while (!stopping()) {
     devices_->poll(*this, 20'000);
+    // A device that goes quiet must not hold back the samples read before (nor their records).
+    if (!raw_batch_.samples.empty() && mono_us() - raw_batch_first_us_ >= kMaxRawBatchHoldUs)
+      flush_raw_batch();
     hand_over_solve();
     install_solve_results();
     check_auto_accept();
@@ -268,8 +306,8 @@ void Daemon::install_solve_results() {
   solve_in_flight_ = worker_->busy();
   if (d->tag != session_) return;  // the solve of an earlier session's calibration
   spdlog::info(
-      "solve on the worker: {:.1f} ms ({}); meanwhile {} samples, worst per-sample processing "
-      "{} us (outside solves {} us)",
+      "solve on the worker: {:.1f} ms ({}); meanwhile {} raw messages, worst processing of one "
+      "(publish + pipeline) {} us (outside solves {} us)",
       1e-3 * static_cast<double>(d->solve_us), d->result.ok ? "candidate" : "refused",
       samples_during_solve_, worst_sample_us_during_solve_, worst_sample_us_);
   // Published and applied here, in the event order, so that a replay installs it at the same

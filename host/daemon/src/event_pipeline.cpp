@@ -64,6 +64,15 @@ void EventPipeline::apply(const magvec_lcm::mag_sample& m) noexcept {
   pipeline_->on_magnetometer(from_lcm(m), m.f_ref_nT);
 }
 
+void EventPipeline::apply(const magvec_lcm::mag_sample_batch& b) noexcept {
+  if (b.count < 0 || static_cast<std::size_t>(b.count) != b.samples.size()) {
+    ++malformed_batches_;
+    return;
+  }
+  for (const magvec_lcm::mag_sample& m : b.samples)
+    apply(m);
+}
+
 void EventPipeline::apply(const magvec_lcm::attitude& a) noexcept {
   if (!pipeline_) {
     ++skipped_;

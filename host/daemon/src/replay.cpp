@@ -94,6 +94,15 @@ ReplayResult replay_log(const std::string& path, hal::RecordSink& sink,
       }
       ++r.mag_samples;
       ep.apply(m);
+    } else if (ch == c.raw_mag_batch) {
+      magvec_lcm::mag_sample_batch b;
+      if (!decode(ev, &b)) {
+        ++r.decode_errors;
+        continue;
+      }
+      ++r.mag_batches;
+      r.mag_samples += b.samples.size();
+      ep.apply(b);
     } else if (ch == c.attitude) {
       magvec_lcm::attitude a;
       if (!decode(ev, &a)) {

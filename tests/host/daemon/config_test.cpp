@@ -1,6 +1,6 @@
 // magvecd's TOML configuration (host/daemon/config.hpp): numbers that have no exact double and
 // text toml++ must never see (invalid UTF-8, non-ASCII outside comments) are configuration errors
-// naming the file, the key or the line and column.
+// naming the file, the key or the line and column; lcm.raw_batch and its channel are checked.
 #include "magvec/host/daemon/config.hpp"
 
 #include <gtest/gtest.h>
@@ -99,6 +99,40 @@ TEST(DaemonConfigText, NonAsciiCommentsAreAllowed) {
   EXPECT_EQ(c.lcm.url, "udpm://a#b");
   EXPECT_EQ(c.lcm.channels.raw_mag, "M\"");
   EXPECT_EQ(c.lcm.channels.output, "a\\");
+}
+
+// lcm.raw_batch: 1 (default, per-sample messages) to kMaxRawBatch; anything else is an error
+// naming the key, as --check-config prints it.
+TEST(DaemonConfigLcm, RawBatchIsAnIntegerInItsRange) {
+  EXPECT_EQ(parse_config("", "cfg.toml").lcm.raw_batch, 1u);
+  EXPECT_EQ(parse_config("[lcm]\nraw_batch = 1\n", "cfg.toml").lcm.raw_batch, 1u);
+  EXPECT_EQ(parse_config("[lcm]\nraw_batch = 10\n", "cfg.toml").lcm.raw_batch, 10u);
+  EXPECT_EQ(parse_config("[lcm]\nraw_batch = 1000\n", "cfg.toml").lcm.raw_batch, kMaxRawBatch);
+  for (const char* bad : {"0", "-1", "1001", "4294967297", "-9223372036854775808"}) {
+    SCOPED_TRACE(bad);
+    EXPECT_EQ(error_of(std::string("[lcm]\nraw_batch = ") + bad + "\n"),
+              "cfg.toml: lcm.raw_batch: out of range [1, 1000]");
+  }
+  for (const char* bad : {"2.5", "10.0", "\"10\"", "true", "nan", "[10]"}) {
+    SCOPED_TRACE(bad);
+    EXPECT_EQ(error_of(std::string("[lcm]\nraw_batch = ") + bad + "\n"),
+              "cfg.toml: lcm.raw_batch: expected an integer");
+  }
+  EXPECT_EQ(error_of("[lcm]\nraw_batc = 10\n"), "cfg.toml: lcm.raw_batc: unknown key");
+}
+
+// The batch has its own channel: a reader decodes a channel as one type.
+TEST(DaemonConfigLcm, RawBatchChannelDiffersFromTheSampleChannel) {
+  EXPECT_EQ(parse_config("", "cfg.toml").lcm.channels.raw_mag_batch, "MAGVEC_RAW_MAG_BATCH");
+  EXPECT_EQ(
+      error_of("[lcm.channels]\nraw_mag_batch = \"MAGVEC_RAW_MAG\"\n"),
+      "cfg.toml: lcm.channels.raw_mag_batch: must differ from raw_mag (another message type)");
+  EXPECT_EQ(
+      error_of("[lcm.channels]\nraw_mag = \"R\"\nraw_mag_batch = \"R\"\n"),
+      "cfg.toml: lcm.channels.raw_mag_batch: must differ from raw_mag (another message type)");
+  EXPECT_EQ(parse_config("[lcm.channels]\nraw_mag_batch = \"B\"\n", "cfg.toml")
+                .lcm.channels.raw_mag_batch,
+            "B");
 }
 
 }  // namespace

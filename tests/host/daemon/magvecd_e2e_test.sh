@@ -4,7 +4,8 @@
 #   1. lcm-logger records while `magvecd --sim` runs ~4 s: message rates as configured, the
 #      calibration applies and is persisted, `magvec ctl status` answers, SIGTERM -> exit 0 < 1 s;
 #   2. `magvec replay --lcm-log` reproduces the live outputs in the log bit for bit, and so does a
-#      subscriber fed by the file:// provider (speed=0);
+#      subscriber fed by the file:// provider (speed=0); with lcm.raw_batch = 10 at 1 kHz too (raw
+#      samples in mag_sample_batch messages), and raw_batch = 0 is a configuration error;
 #   3. a restart loads the persisted calibration; SIGHUP starts a new session; replay of that log
 #      (two sessions) is bit-identical too;
 #   4. a corrupt config (2), a missing device (3) and a corrupt calibration file (4) each give a
@@ -137,6 +138,52 @@ check "replay reaches cal_id 1 like the live run" grep -q "state applied, cal_id
 "$PROBE" subscribe "file://$W/run1.lcm?speed=0" MAGVEC_OUTPUT "$W/file_sub.csv" 1.0 >"$W/file_sub.out"
 cat "$W/file_sub.out"
 check "file:// replay into a subscriber gives the same outputs" cmp -s <(data_rows "$W/file_sub.csv") <(data_rows "$W/replay1.csv")
+
+# ------------------------------------------------------------------ 2b. batched raw samples
+# lcm.raw_batch = 10 at 1 kHz (INS 100 Hz): the raw samples travel as mag_sample_batch on their
+# own channel, the outputs stay one per sample, and the replay is bit-identical.
+cat > "$W/batch.toml" <<EOF
+[daemon]
+realtime = true
+[lcm]
+url = "$URL"
+raw_batch = 10
+[devices.magnetometer]
+rate_hz = 1000.0
+[devices.ins]
+rate_hz = 100.0
+EOF
+start_logger "$W/batch.lcm"
+"$MAGVECD" --config "$W/batch.toml" --sim --state-dir "$W/state_batch" 2>"$W/batch.err" &
+D=$!
+PIDS+=("$D")
+sleep 2.0
+stop_daemon "$D"
+stop_logger
+check "raw_batch = 10: SIGTERM exits 0 ($STOP_RC)" [ "$STOP_RC" -eq 0 ]
+"$PROBE" rate "$W/batch.lcm" MAGVEC_OUTPUT MAGVEC_RAW_MAG MAGVEC_RAW_MAG_BATCH MAGVEC_ATTITUDE \
+  >"$W/batch_rates.out"
+cat "$W/batch_rates.out"
+check "raw_batch: MAGVEC_OUTPUT at 1 kHz (+-3 %)" awk '$1 == "MAGVEC_OUTPUT" { ok = ($3 > 970 && $3 < 1030) } END { exit !ok }' "$W/batch_rates.out"
+check "raw_batch: no per-sample raw messages" awk '$1 == "MAGVEC_RAW_MAG" { ok = ($2 == 0) } END { exit !ok }' "$W/batch_rates.out"
+check "raw_batch: about one batch per INS period (100 Hz +-10 %)" awk '$1 == "MAGVEC_RAW_MAG_BATCH" { ok = ($3 > 90 && $3 < 110) } END { exit !ok }' "$W/batch_rates.out"
+"$MAGVEC" replay --lcm-log "$W/batch.lcm" --out "$W/replay_batch.csv" --logged-out "$W/live_batch.csv" \
+  --check >"$W/replay_batch.out" 2>&1
+RP_RC=$?
+cat "$W/replay_batch.out"
+check "raw_batch: magvec replay --check bit-identical (rc $RP_RC)" [ "$RP_RC" -eq 0 ]
+check "raw_batch: replay CSV equals the live outputs' CSV" cmp -s <(data_rows "$W/replay_batch.csv") <(data_rows "$W/live_batch.csv")
+N_BATCH_OUT=$(awk '$1 == "MAGVEC_OUTPUT" { print $2 }' "$W/batch_rates.out")
+N_BATCH_SAMPLES=$(sed -n 's/.* \([0-9]*\) magnetometer samples.*/\1/p' "$W/replay_batch.out")
+check "raw_batch: one output per sample ($N_BATCH_OUT outputs, $N_BATCH_SAMPLES samples)" \
+  [ "${N_BATCH_OUT:-0}" -gt 1000 ] && [ "$N_BATCH_OUT" = "$N_BATCH_SAMPLES" ]
+printf '[lcm]\nraw_batch = 0\n' >"$W/bad_batch.toml"
+"$MAGVECD" --config "$W/bad_batch.toml" --check-config >"$W/bad_batch.out" 2>&1
+BB_RC=$?
+cat "$W/bad_batch.out"
+check "raw_batch = 0: --check-config exits 2 (got $BB_RC)" [ "$BB_RC" -eq 2 ]
+check "raw_batch = 0: the message names the key and its range" \
+  grep -q "lcm.raw_batch: out of range \[1, 1000\]" "$W/bad_batch.out"
 
 # ------------------------------------------------------------------ 3. restart, SIGHUP
 start_logger "$W/run2.lcm"

@@ -8,6 +8,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
 #include <deque>
 #include <filesystem>
 #include <lcm/lcm-cpp.hpp>
@@ -34,11 +35,13 @@ struct VectorSink final : hal::RecordSink {
   }
 };
 
-std::string fast_config_text(const std::string& mode) {
+std::string fast_config_text(const std::string& mode, double mag_rate_hz = 100) {
   std::string text = default_config_text();
   auto patch = [&text](const std::string& from, const std::string& to) {
     text.replace(text.find(from), from.size(), to);
   };
+  // The first rate_hz is the magnetometer's (the INS stays at 100 Hz).
+  patch("rate_hz = 100.0", "rate_hz = " + std::to_string(mag_rate_hz));
   patch("samples_per_attitude = 10", "samples_per_attitude = 1");
   patch("li_min_samples = 300", "li_min_samples = 100");
   patch("validation_samples = 200", "validation_samples = 100");
@@ -46,8 +49,8 @@ std::string fast_config_text(const std::string& mode) {
   return text;
 }
 
-Config fast_config(const std::string& mode) {
-  return parse_config(fast_config_text(mode), "test");
+Config fast_config(const std::string& mode, double mag_rate_hz = 100) {
+  return parse_config(fast_config_text(mode, mag_rate_hz), "test");
 }
 
 // Drives SimFrontEnd events into an EventPipeline through the LCM messages (as magvecd does) and
@@ -83,21 +86,48 @@ struct DaemonLike {
     ev.data = buf.data();
     ASSERT_EQ(log->writeEvent(&ev), 0);
   }
+  // raw_batch > 1: the samples wait in `pending` and are published as one mag_sample_batch, then
+  // fed, when the batch is full or before any other input event (as magvecd with lcm.raw_batch).
+  std::size_t raw_batch{1};
+  magvec_lcm::mag_sample_batch pending{};
+  std::size_t batches{0};
+  void flush_batch() {
+    if (pending.samples.empty()) return;
+    pending.count = static_cast<std::int32_t>(pending.samples.size());
+    record("MAGVEC_RAW_MAG_BATCH", pending);
+    ep.apply(pending);
+    pending.samples.clear();
+    ++batches;
+  }
   void event(const magvec_lcm::pipeline_event& e) {
+    flush_batch();
     record("MAGVEC_PIPELINE", e);
     ep.apply(e);
   }
   void on_attitude(const hal::AttitudeSample& a) {
+    flush_batch();
     const auto m = to_lcm(a);
     record("MAGVEC_ATTITUDE", m);
     ep.apply(m);
   }
   void on_magnetometer(const hal::MagnetometerSample& s, double f) {
     const auto m = to_lcm(s, f);
+    if (raw_batch > 1) {
+      pending.samples.push_back(m);
+      if (pending.samples.size() >= raw_batch) flush_batch();
+      return;
+    }
     record("MAGVEC_RAW_MAG", m);
     ep.apply(m);
   }
-  void on_read_error(hal::Status) { ep.pipeline()->on_read_error(); }
+  void on_read_error(hal::Status) {
+    flush_batch();
+    ep.pipeline()->on_read_error();
+  }
+  void stop() {
+    flush_batch();
+    ep.flush();
+  }
 };
 
 TEST(DaemonConfig, EmbeddedDefaultAndExampleFileParseAlike) {
@@ -107,6 +137,8 @@ TEST(DaemonConfig, EmbeddedDefaultAndExampleFileParseAlike) {
                    "magvecd.toml");
   EXPECT_EQ(d.lcm.url, e.lcm.url);
   EXPECT_EQ(d.lcm.channels.output, e.lcm.channels.output);
+  EXPECT_EQ(d.lcm.channels.raw_mag_batch, e.lcm.channels.raw_mag_batch);
+  EXPECT_EQ(d.lcm.raw_batch, e.lcm.raw_batch);
   EXPECT_EQ(d.magnetometer.rate_hz, e.magnetometer.rate_hz);
   EXPECT_EQ(d.magnetometer.adc.nT_per_volt, e.magnetometer.adc.nT_per_volt);
   EXPECT_EQ(d.ins.ids.ekf_quat, e.ins.ids.ekf_quat);
@@ -135,6 +167,8 @@ TEST(DaemonConfig, EmptyFileEqualsTheEmbeddedDefault) {
                 dc.command + dc.reply,
             ec.raw_mag + ec.attitude + ec.pipeline + ec.output + ec.cal_state + ec.health +
                 ec.command + ec.reply);
+  EXPECT_EQ(dc.raw_mag_batch, ec.raw_mag_batch);
+  EXPECT_EQ(d.lcm.raw_batch, e.lcm.raw_batch);
   const auto& dm = d.magnetometer;
   const auto& em = e.magnetometer;
   EXPECT_EQ(dm.link, em.link);
@@ -261,30 +295,37 @@ class DaemonReplay : public ::testing::Test {
 
   // Writes a log the way magvecd publishes: session, calibration install, start, samples,
   // outputs; a second session (reload) in the middle. Returns the live records.
-  std::vector<hal::OutputRecord> write_log(int steps) {
+  // raw_batch > 1 publishes the raw samples in batches (lcm.raw_batch); `batches` receives their
+  // number.
+  // mag_rate_hz: the magnetometer's rate (the INS runs at 100 Hz).
+  std::vector<hal::OutputRecord> write_log(int steps, std::size_t raw_batch = 1,
+                                           std::size_t* batches = nullptr,
+                                           double mag_rate_hz = 100) {
     lcm::LogFile log(path_, "w");
     EXPECT_TRUE(log.good());
-    const Config c = fast_config("li");
+    const Config c = fast_config("li", mag_rate_hz);
     drivers::sim::Simulator sim(sim_scenario(c), c.sim.seed);
     auto front = std::make_unique<hil::SimFrontEnd>(sim, sim_rig_config(c));
     EXPECT_EQ(front->init(), hal::Status::kOk);
     DaemonLike d;
     d.log = &log;
+    d.raw_batch = raw_batch;
     core::SensorModel<double> m;
     m.o = core::Vec3<double>(10, -20, 5);
-    d.event(session_start_event(1, fast_config_text("li")));
+    d.event(session_start_event(1, fast_config_text("li", mag_rate_hz)));
     d.event(set_active_event(2, m, 4));
     d.event(start_calibration_event(3));
     for (int i = 0; i < steps; ++i) {
       if (i == steps / 2) {  // SIGHUP-like new session, carrying the active calibration over
         const CalibrationStatus st = d.ep.pipeline()->status();
-        d.event(session_start_event(4, fast_config_text("ekf")));
+        d.event(session_start_event(4, fast_config_text("ekf", mag_rate_hz)));
         d.event(set_active_event(5, st.active, st.cal_id, 0.0, st.output));
       }
       EXPECT_TRUE(front->rig().step());
       front->poll(d);
     }
-    d.ep.flush();  // the daemon stops: the samples inside the horizon get their records
+    d.stop();  // the daemon stops: the samples inside the horizon get their records
+    if (batches != nullptr) *batches = d.batches;
     return d.sink.records;
   }
 
@@ -310,6 +351,138 @@ TEST_F(DaemonReplay, ReplayIsBitIdenticalToTheLiveRecords) {
   EXPECT_EQ(live[800].cal_id, 5u);
   EXPECT_EQ(live.back().cal_id, 5u);
   EXPECT_EQ(r.final_status.calibrator, "ekf");
+}
+
+// lcm.raw_batch: the raw samples travel in mag_sample_batch messages, each published before its
+// samples are fed; the replay feeds them in log order and is bit-identical to the live records,
+// which are the records of the per-sample log (batching changes the messages, not the outputs).
+TEST_F(DaemonReplay, BatchedRawSamplesReplayBitIdentically) {
+  const std::vector<hal::OutputRecord> per_sample = write_log(1600, 1, nullptr, 1000);
+  for (const std::size_t batch : {std::size_t{2}, std::size_t{10}, std::size_t{1000}}) {
+    SCOPED_TRACE(batch);
+    std::size_t batches = 0;
+    const std::vector<hal::OutputRecord> live = write_log(1600, batch, &batches, 1000);
+    // 1 kHz against a 100 Hz INS: batches of up to 10 samples between two attitudes.
+    EXPECT_GE(batches, 1600u / std::min<std::size_t>(batch, 10));
+    EXPECT_LT(batches, 1600u / 2u + 10u);
+    VectorSink replayed, logged;
+    const ReplayResult r = replay_log(path_, replayed, &logged);
+    EXPECT_EQ(r.mag_batches, batches);
+    EXPECT_EQ(r.mag_samples, 1600u);
+    EXPECT_EQ(r.decode_errors, 0u);
+    EXPECT_EQ(r.sessions, 2u);
+    EXPECT_EQ(r.compared, live.size());
+    EXPECT_EQ(r.mismatches, 0u);
+    EXPECT_EQ(r.uncompared, 0u);
+    ASSERT_EQ(live.size(), per_sample.size());
+    ASSERT_EQ(replayed.records.size(), live.size());
+    for (std::size_t i = 0; i < live.size(); ++i) {
+      ASSERT_TRUE(bit_identical(replayed.records[i], live[i])) << i;
+      ASSERT_TRUE(bit_identical(live[i], per_sample[i])) << i;
+    }
+  }
+}
+
+// A batch is cut by every other input event and never exceeds raw_batch samples: at 1 kHz with a
+// 100 Hz INS and raw_batch = 4, batches of 4, 4 and 2 between two attitudes.
+TEST_F(DaemonReplay, BatchesHoldAtMostRawBatchSamplesBetweenOtherEvents) {
+  std::size_t batches = 0;
+  (void)write_log(2000, 4, &batches, 1000);
+  std::size_t max_count = 0, samples = 0, single = 0, prev_count = 0;
+  lcm::LogFile log(path_, "r");
+  std::string previous;
+  const lcm::LogEvent* ev = nullptr;
+  while ((ev = log.readNextEvent()) != nullptr) {
+    if (ev->channel == "MAGVEC_RAW_MAG") ++single;
+    if (ev->channel == "MAGVEC_RAW_MAG_BATCH") {
+      magvec_lcm::mag_sample_batch b{};
+      ASSERT_GE(b.decode(ev->data, 0, ev->datalen), 0);
+      ASSERT_EQ(static_cast<std::size_t>(b.count), b.samples.size());
+      ASSERT_FALSE(b.samples.empty());
+      // Two batches in a row only when the first was full.
+      if (previous == "MAGVEC_RAW_MAG_BATCH") {
+        EXPECT_EQ(prev_count, 4u);
+      }
+      max_count = std::max(max_count, b.samples.size());
+      samples += b.samples.size();
+      prev_count = b.samples.size();
+    }
+    if (ev->channel != "MAGVEC_OUTPUT") previous = ev->channel;
+  }
+  EXPECT_EQ(single, 0u);
+  EXPECT_EQ(samples, 2000u);
+  EXPECT_EQ(max_count, 4u);
+  // 4 + 4 + 2 per attitude period, plus the cuts of the reload's events and of the stop.
+  EXPECT_GE(batches, 2000u / 10u * 3u);
+  EXPECT_LE(batches, 2000u / 10u * 3u + 3u);
+}
+
+// A batch changed in one sample by one ulp no longer replays identically.
+TEST_F(DaemonReplay, AChangedSampleInABatchIsDetected) {
+  write_log(400, 10, nullptr, 1000);
+  const std::string changed = (dir_ / "changed.lcm").string();
+  {
+    lcm::LogFile in(path_, "r");
+    lcm::LogFile out(changed, "w");
+    int batches = 0;
+    const lcm::LogEvent* ev = nullptr;
+    while ((ev = in.readNextEvent()) != nullptr) {
+      lcm::LogEvent copy = *ev;
+      std::vector<std::uint8_t> buf;
+      if (ev->channel == "MAGVEC_RAW_MAG_BATCH" && ++batches == 20) {
+        magvec_lcm::mag_sample_batch b{};
+        ASSERT_GE(b.decode(ev->data, 0, ev->datalen), 0);
+        ASSERT_FALSE(b.samples.empty());
+        b.samples.back().m_nT[2] = std::nextafter(b.samples.back().m_nT[2], 1e9);
+        buf.resize(static_cast<std::size_t>(b.getEncodedSize()));
+        b.encode(buf.data(), 0, static_cast<int>(buf.size()));
+        copy.data = buf.data();
+        copy.datalen = static_cast<std::int32_t>(buf.size());
+      }
+      ASSERT_EQ(out.writeEvent(&copy), 0);
+    }
+    ASSERT_GE(batches, 20);
+  }
+  VectorSink replayed;
+  const ReplayResult r = replay_log(changed, replayed);
+  EXPECT_EQ(r.compared, 400u);
+  EXPECT_GE(r.mismatches, 1u);
+}
+
+// A batch that does not decode (truncated, count beyond its bytes) is counted and skipped, never
+// half-applied.
+TEST_F(DaemonReplay, AMalformedBatchIsCountedAndSkipped) {
+  write_log(400, 10, nullptr, 1000);
+  const std::string broken = (dir_ / "broken.lcm").string();
+  std::size_t lost = 0;
+  {
+    lcm::LogFile in(path_, "r");
+    lcm::LogFile out(broken, "w");
+    int batches = 0;
+    const lcm::LogEvent* ev = nullptr;
+    while ((ev = in.readNextEvent()) != nullptr) {
+      lcm::LogEvent copy = *ev;
+      std::vector<std::uint8_t> buf(ev->datalen > 0 ? static_cast<std::size_t>(ev->datalen) : 0);
+      if (ev->channel == "MAGVEC_RAW_MAG_BATCH" && ++batches % 7 == 0) {
+        magvec_lcm::mag_sample_batch b{};
+        ASSERT_GE(b.decode(ev->data, 0, ev->datalen), 0);
+        lost += b.samples.size();
+        std::memcpy(buf.data(), ev->data, buf.size());
+        if (batches % 14 == 0) {
+          copy.datalen -= 1;  // truncated
+        } else {
+          buf[8] = 0x7F;  // count far beyond the bytes
+        }
+        copy.data = buf.data();
+      }
+      ASSERT_EQ(out.writeEvent(&copy), 0);
+    }
+  }
+  ASSERT_GT(lost, 0u);
+  VectorSink replayed;
+  const ReplayResult r = replay_log(broken, replayed);
+  EXPECT_GE(r.decode_errors, 2u);
+  EXPECT_EQ(r.mag_samples, 400u - lost);
 }
 
 // --time-offset-s: the same offset as logged replays bit-identically; another one changes the

@@ -1,8 +1,9 @@
-// Decoding hostile bytes with the generated LCM types (host/lcm/harden_generated.cmake), both found
-// by tests/fuzz/lcm_decode_fuzz: a string length below 1 made decode() throw std::length_error, or
+// Decoding hostile bytes with the generated LCM types (host/lcm/harden_generated.cmake). Found by
+// tests/fuzz/lcm_decode_fuzz: a string length below 1 made decode() throw std::length_error, or
 // overflow for INT32_MIN, instead of rejecting the message (through a subscription that would
 // terminate magvecd on one malformed packet on its command channel); a string with an embedded NUL
-// was accepted and re-encoded inconsistently.
+// was accepted and re-encoded inconsistently. The array count check of mag_sample_batch (fuzzed by
+// tests/fuzz/mag_sample_batch_fuzz) came with the type.
 #include <gtest/gtest.h>
 
 #include <cstdint>
@@ -117,6 +118,71 @@ TEST(LcmDecode, EveryStringFieldOfEveryTypeIsChecked) {
       }
     }
   }
+}
+
+magvec_lcm::mag_sample_batch sample_batch(int n) {
+  magvec_lcm::mag_sample_batch b{};
+  for (int i = 0; i < n; ++i) {
+    hal::MagnetometerSample s;
+    s.t_us = 1'000'000 + 1000 * static_cast<std::uint64_t>(i);
+    s.m_nT = {1.5 * i, -2.25, 4e4 + i};
+    s.raw = {i, -i, 7};
+    s.flags = static_cast<std::uint32_t>(i % 3);
+    s.sequence = static_cast<std::uint32_t>(100 + i);
+    b.samples.push_back(to_lcm(s, i == 1 ? std::numeric_limits<double>::quiet_NaN() : 5e4));
+  }
+  b.count = n;
+  return b;
+}
+
+// The batched raw message (lcm.raw_batch > 1) carries every field of each sample bit-exactly.
+TEST(LcmDecode, MagSampleBatchRoundTrips) {
+  for (const int n : {0, 1, 10, 1000}) {
+    SCOPED_TRACE(n);
+    const magvec_lcm::mag_sample_batch b = sample_batch(n);
+    const std::vector<std::uint8_t> bytes = encode(b);
+    EXPECT_EQ(bytes.size(), 8u + 4u + 60u * static_cast<std::size_t>(n));
+    magvec_lcm::mag_sample_batch back{};
+    ASSERT_EQ(back.decode(bytes.data(), 0, static_cast<int>(bytes.size())),
+              static_cast<int>(bytes.size()));
+    ASSERT_EQ(back.count, n);
+    ASSERT_EQ(back.samples.size(), static_cast<std::size_t>(n));
+    for (int i = 0; i < n; ++i)
+      EXPECT_EQ(encode(back.samples[static_cast<std::size_t>(i)]),
+                encode(b.samples[static_cast<std::size_t>(i)]));
+    EXPECT_EQ(encode(back), bytes);
+  }
+}
+
+// The count of a variable-length array is checked before the decoder allocates: a negative count
+// made resize() throw std::length_error and INT32_MAX allocated 2^31 samples before the buffer
+// ran out (host/lcm/harden_generated.cmake). Counts beyond the bytes, truncations and a wrong
+// fingerprint are rejected without throwing.
+TEST(LcmDecode, MagSampleBatchBadCountsAndTruncationsAreRejected) {
+  const std::vector<std::uint8_t> good = encode(sample_batch(3));
+  for (const std::int32_t count : {-1, std::numeric_limits<std::int32_t>::min(), 4, 100, 181,
+                                   std::numeric_limits<std::int32_t>::max()}) {
+    SCOPED_TRACE(count);
+    std::vector<std::uint8_t> bad = good;
+    put_be32(bad, 8, count);  // after the fingerprint
+    magvec_lcm::mag_sample_batch m{};
+    int n = 0;
+    EXPECT_NO_THROW(n = m.decode(bad.data(), 0, static_cast<int>(bad.size())));
+    EXPECT_LT(n, 0);
+  }
+  for (std::size_t len = 0; len < good.size(); ++len) {
+    magvec_lcm::mag_sample_batch m{};
+    EXPECT_LT(m.decode(good.data(), 0, static_cast<int>(len)), 0) << len;
+  }
+  std::vector<std::uint8_t> other = good;
+  other[0] ^= 1;
+  magvec_lcm::mag_sample_batch m{};
+  EXPECT_LT(m.decode(other.data(), 0, static_cast<int>(other.size())), 0);
+  // A per-sample message is not a batch (and the other way round): the fingerprints differ.
+  const std::vector<std::uint8_t> single = encode(sample_batch(1).samples[0]);
+  EXPECT_LT(m.decode(single.data(), 0, static_cast<int>(single.size())), 0);
+  magvec_lcm::mag_sample s{};
+  EXPECT_LT(s.decode(good.data(), 0, static_cast<int>(good.size())), 0);
 }
 
 // What magvecd does: a typed subscription on the command channel. The malformed packet is dropped

@@ -25,6 +25,7 @@ class ConfigError : public std::runtime_error {
 
 struct LcmChannels {
   std::string raw_mag{"MAGVEC_RAW_MAG"};
+  std::string raw_mag_batch{"MAGVEC_RAW_MAG_BATCH"};  // lcm.raw_batch > 1
   std::string attitude{"MAGVEC_ATTITUDE"};
   std::string pipeline{"MAGVEC_PIPELINE"};
   std::string output{"MAGVEC_OUTPUT"};
@@ -104,8 +105,16 @@ struct LcmConfig {
   std::string url{"udpm://239.255.76.67:7667?ttl=0"};
   // Commands and replies (`magvec ctl`); empty: derived from url (command_url_for).
   std::string command_url{};
+  // Raw magnetometer samples per message: 1, one mag_sample per sample on channels.raw_mag (the
+  // format of every earlier log); N > 1, mag_sample_batch messages of up to N samples on
+  // channels.raw_mag_batch (fewer sends per sample; a batch is published, and its samples fed,
+  // when it is full or before any other input event). The outputs stay one per sample.
+  std::uint32_t raw_batch{1};
   LcmChannels channels{};
 };
+
+// Largest lcm.raw_batch: a batch of 1000 samples is 60 kB, under one UDP datagram's 64 kB.
+inline constexpr std::uint32_t kMaxRawBatch = 1000;
 
 // The command URL of a daemon on `url` when lcm.command_url is empty: a udpm URL with the port
 // + 1 (another multicast port, so the daemon's command socket never receives the data traffic);

@@ -49,6 +49,11 @@ class Daemon final : public EventHandler {
   void loop_session();
   void serve(std::uint32_t us);
   void event(const magvec_lcm::pipeline_event& e);
+  // Feeds one raw sample (publish, then apply); with lcm.raw_batch > 1 the sample joins the
+  // pending batch, which flush_raw_batch() publishes and then feeds.
+  void feed_magnetometer(const magvec_lcm::mag_sample& m);
+  void flush_raw_batch();
+  void note_processing_us(std::uint64_t dt_us) noexcept;
   void hand_over_solve();
   void install_solve_results();
   void check_auto_accept();
@@ -76,6 +81,12 @@ class Daemon final : public EventHandler {
       return publisher != nullptr ? publisher->emit(r) : hal::Status::kNotReady;
     }
   } sink_;
+  // Raw samples read but not yet published nor fed (lcm.raw_batch > 1), oldest first. Every
+  // other input event, and the end of a session, flushes them first, so that the log holds the
+  // feed order; a batch is also flushed once its first sample has waited kMaxRawBatchHoldUs.
+  magvec_lcm::mag_sample_batch raw_batch_{};
+  std::uint64_t raw_batch_first_us_{0};
+  static constexpr std::uint64_t kMaxRawBatchHoldUs = 50'000;
   std::int64_t sequence_{0};
   std::uint64_t session_{0};  // tags the solves: a result of an earlier session is dropped
   std::uint64_t applied_seen_{0};
@@ -89,7 +100,8 @@ class Daemon final : public EventHandler {
   std::string last_state_;
   core::CalState last_state_enum_{core::CalState::kIdle};
   std::int32_t last_cal_id_{-1};
-  // Per-sample processing time (publish + pipeline), worst while a solve ran and otherwise.
+  // Processing time of a raw message (publish + pipeline: one sample, or with lcm.raw_batch > 1
+  // one batch), worst while a solve ran and otherwise.
   bool solve_in_flight_{false};
   std::uint64_t samples_during_solve_{0};
   std::uint64_t worst_sample_us_during_solve_{0};

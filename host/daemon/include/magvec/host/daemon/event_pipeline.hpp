@@ -10,6 +10,7 @@
 //   pipeline_event SOLVE_ON_WORKER   -> set_external_solve(true): the session's solves come as
 //   pipeline_event SOLVE_RESULT      -> install_solve (where it is in the event order)
 //   mag_sample / attitude         -> on_magnetometer / on_attitude
+//   mag_sample_batch              -> on_magnetometer for each of its samples, oldest first
 // Samples before the first SESSION_START have no pipeline: they are counted and skipped.
 #pragma once
 
@@ -30,6 +31,9 @@ class EventPipeline {
   // pipeline is kept).
   void apply(const magvec_lcm::pipeline_event& e);
   void apply(const magvec_lcm::mag_sample& m) noexcept;
+  // A batch whose count disagrees with its samples (never so when decoded) is skipped whole and
+  // counted (malformed_batches).
+  void apply(const magvec_lcm::mag_sample_batch& b) noexcept;
   void apply(const magvec_lcm::attitude& a) noexcept;
   void flush() noexcept;
 
@@ -40,6 +44,7 @@ class EventPipeline {
   std::uint64_t skipped_before_session() const noexcept { return skipped_; }
   std::uint64_t unknown_events() const noexcept { return unknown_events_; }
   std::uint64_t stale_solves() const noexcept { return stale_solves_; }
+  std::uint64_t malformed_batches() const noexcept { return malformed_batches_; }
 
  private:
   hal::RecordSink& sink_;
@@ -49,6 +54,7 @@ class EventPipeline {
   std::uint64_t skipped_{0};
   std::uint64_t unknown_events_{0};
   std::uint64_t stale_solves_{0};
+  std::uint64_t malformed_batches_{0};
 };
 
 }  // namespace magvec::host::daemon

@@ -11,6 +11,7 @@
 #include <magvec_lcm/command_reply.hpp>
 #include <magvec_lcm/health.hpp>
 #include <magvec_lcm/mag_sample.hpp>
+#include <magvec_lcm/mag_sample_batch.hpp>
 #include <magvec_lcm/pipeline_event.hpp>
 
 #include "magvec/core/sensor_model.hpp"

@@ -1,4 +1,5 @@
-// Deterministic replay of a magvecd LCM log: the raw channels and the pipeline
+// Deterministic replay of a magvecd LCM log: the raw channels (per-sample and batched raw
+// magnetometer messages alike, lcm.raw_batch) and the pipeline
 // events are read in log order (lcm::LogFile) and fed to the same EventPipeline the daemon used,
 // as fast as possible. The records go to `sink`; the live outputs recorded in the log (output
 // channel) can be written to `logged_sink` and are compared bit for bit with the replayed ones.
@@ -24,7 +25,8 @@ class ReplayError : public std::runtime_error {
 struct ReplayResult {
   std::uint64_t log_events{0};
   std::uint64_t sessions{0};
-  std::uint64_t mag_samples{0};
+  std::uint64_t mag_samples{0};  // raw magnetometer samples, single or in batches
+  std::uint64_t mag_batches{0};  // mag_sample_batch messages
   std::uint64_t attitude_samples{0};
   std::uint64_t pipeline_events{0};
   std::uint64_t records{0};         // replayed records

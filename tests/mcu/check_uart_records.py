@@ -27,8 +27,9 @@ def skip(msg):
 
 def run(qemu, machine, elf, serial, args, timeout):
     sh = ",".join(["enable=on", "target=native", "arg=magvec_app"] + [f"arg={a}" for a in args])
+    # -icount: the image's sample clock (SysTick) on instruction time, a deterministic run.
     p = subprocess.run([qemu, "-M", machine, "-nographic", "-monitor", "none", "-serial", serial,
-                        "-semihosting-config", sh, "-kernel", elf],
+                        "-icount", "shift=0,sleep=off", "-semihosting-config", sh, "-kernel", elf],
                        capture_output=True, text=True, timeout=timeout)
     return p.returncode, p.stdout, p.stderr
 

@@ -89,8 +89,11 @@ def main():
         skip("qemu-system-arm not installed (toolchain/setup)")
 
     c = Checker()
+    # -icount: the image's sample clock (SysTick) on instruction time (one instruction per
+    # virtual nanosecond, idle time skipped), so ticks and main loop interleave deterministically.
     cmd = [qemu, "-M", a.machine, "-nographic", "-monitor", "none", "-serial", "none",
-           "-semihosting-config", "enable=on,target=native", "-kernel", a.elf]
+           "-icount", "shift=0,sleep=off", "-semihosting-config", "enable=on,target=native",
+           "-kernel", a.elf]
     rc, target_out, err = run(cmd, a.timeout)
     c.check(rc == 0, f"qemu {a.machine} exit code {rc} (0 = on-target checks passed) {err.strip()}")
     t = parse(target_out)
@@ -107,6 +110,18 @@ def main():
     for key in ("boot", "pcut", "reload", "counts", "pipeline"):
         c.check(t["lines"].get(key) == h["lines"].get(key),
                 f"{key} identical: '{t['lines'].get(key)}'")
+    # Acquisition on the sample clock's interrupt, the solve in the main loop's idle time: every
+    # sample produced was consumed, none lost to a full queue.
+    acq = dict(kv.split("=", 1) for kv in t["lines"].get("acq", "").split() if "=" in kv)
+    samples = dict(kv.split("=", 1) for kv in t["lines"].get("counts", "").split() if "=" in kv)
+    c.check(acq.get("clock") == "1", f"target acquired on its sample clock: {t['lines'].get('acq')}")
+    c.check(acq.get("lost") == "0" and acq.get("produced") == acq.get("consumed") ==
+            samples.get("samples"), f"target: {acq.get('produced')} samples produced, "
+            f"{acq.get('consumed')} consumed, {acq.get('lost')} events lost")
+    print(f"target: solve {t['lines'].get('solve')}; queue max depth {acq.get('max_depth')} "
+          f"({acq.get('max_depth_solving')} while solving), worst acquisition-to-pipeline "
+          f"latency {acq.get('max_latency_us')} us ({acq.get('max_latency_solving_us')} us while "
+          f"solving), tick {acq.get('tick_us')} us")
     c.check("initialised=1" in t["lines"].get("ekf", ""), "EKF initialised on target")
     c.check(t["lines"].get("loop", "").startswith("state=applied cal_id=1"),
             f"SensorLoop applied the calibration on target: {t['lines'].get('loop')}")

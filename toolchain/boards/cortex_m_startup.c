@@ -33,6 +33,8 @@ void _fini(void) {}
 
 void Reset_Handler(void) __attribute__((noreturn));
 void Default_Handler(void);
+/* SysTick: the boards' sample clock when they define it (an unexpected tick otherwise faults). */
+void SysTick_Handler(void) __attribute__((weak, alias("Default_Handler")));
 
 void Reset_Handler(void) {
   volatile uint32_t* const cpacr = (volatile uint32_t*)0xE000ED88u;
@@ -60,9 +62,12 @@ void Default_Handler(void) {
 
 typedef void (*Vector)(void);
 
-/* Core exceptions and MAGVEC_IRQ_COUNT external interrupts, all but reset to Default_Handler. */
+/* Core exceptions and MAGVEC_IRQ_COUNT external interrupts, all but reset and SysTick to
+ * Default_Handler. */
 __attribute__((section(".isr_vector"), used)) const Vector g_vectors[16 + MAGVEC_IRQ_COUNT] = {
     [0] = (Vector)&_estack,
     [1] = Reset_Handler,
-    [2 ... 15 + MAGVEC_IRQ_COUNT] = Default_Handler,
+    [2 ... 14] = Default_Handler,
+    [15] = SysTick_Handler,
+    [16 ... 15 + MAGVEC_IRQ_COUNT] = Default_Handler,
 };

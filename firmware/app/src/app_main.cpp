@@ -7,6 +7,17 @@
 //   or the board UART) -- the same pipeline as `magvec run`, magvecd and replay, without an OS.
 // The INS frames arrive as on real hardware (after the magnetometer sample they bracket, CAN
 // latency included); a sample waits in the pipeline's queue until they are there.
+// Acquisition and processing are split as on hardware: the board's sample clock (SysTick under
+// qemu) interrupts once per magnetometer period and its handler does what the data-ready
+// interrupts do (steps the simulated rig, reads the drivers) into a bounded single-producer/
+// single-consumer queue; the main loop feeds the pipeline from the queue, in order. The
+// calibrator's batch solve (alignment fit + Li form) is not run inside a sample: the loop
+// (external_solve) freezes the calibrator and raises a solve ticket, the main loop solves when
+// the queue is empty (idle time, preempted by the ticks) and installs the result when the
+// pipeline has processed kSolveInstallRecords more samples, a fixed point in the sample stream,
+// so the records do not depend on how long the solve took (the M7 image and the host twin stay
+// bit-identical). Under qemu the clock needs -icount (virtual time = instructions) for a
+// deterministic interleaving; the host twin has no clock and acquires from its main loop.
 // Boot: the ParamStore (FlashParamStore over SimFlash) is read; with no stored calibration the
 // loop starts calibrating (ScalarEkf: initial fit, filter, then the misalignment solve, held-out
 // validation). When the loop applies the calibration it is stored in the ParamStore, a power-cut
@@ -18,7 +29,10 @@
 //   baseline   skip the core work (attitude buffer, loop): devices + codecs only
 //   uart       records to the board UART (mps2: CMSDK UART0 = qemu -serial) instead of the console
 //   n=<k>      stop after k magnetometer samples
+//   tick_us=<k> sample clock period in microseconds (default kDefaultTickUs; boards with a clock)
 // Exit code 0 when every on-target check passed (power-cut sweep, reload, calibration applied).
+#include <algorithm>
+#include <atomic>
 #include <cstdint>
 #include <cstring>
 #include <limits>
@@ -94,8 +108,22 @@ core::PipelineConfig<Scalar> make_pipeline_config(const sim::ScenarioConfig& s) 
   c.horizon_us = kFusionHorizonUs;
   c.mag_period_us = pipeline::period_us_from_hz(s.rate_hz);
   c.ins_period_us = pipeline::period_us_from_hz(make_rig_config().ins.rate_hz);
+  // The main loop runs the calibrator's solve in idle time (see the top).
+  c.loop.external_solve = true;
   return c;
 }
+
+// Sample clock period under qemu -icount shift=0 (one instruction per virtual nanosecond): 500 us
+// = 500 000 instructions per magnetometer sample, of which the tick handler's simulated world
+// (simulator, rig, codecs: ~340 000 on the M4F, soft double) takes the larger part; the main loop
+// gets roughly what a 168 MHz M4F has per sample at 1 kHz.
+constexpr std::uint32_t kDefaultTickUs = 500;
+// The solve's result is installed after this many records past the one that raised the ticket
+// (the solve must be done by then; if it is not, the main loop finishes it before going on).
+constexpr std::uint32_t kSolveInstallRecords = 8;
+// Acquisition queue: 64 events (one tick is a magnetometer sample and ~2 INS frames) hold ~20
+// sample periods of main-loop stall (the EKF's start-up fit is the longest).
+constexpr std::size_t kAcqQueueEvents = 64;
 
 // Calibration blob (ParamStore payload): version, count, then W (row-major), o, Rm (w, x, y, z)
 // as little-endian IEEE doubles, whatever Scalar is (float widens and narrows back exactly).
@@ -155,7 +183,15 @@ struct Options {
   bool core{true};
   bool uart{false};
   std::uint32_t max_samples{std::numeric_limits<std::uint32_t>::max()};
+  std::uint32_t tick_us{kDefaultTickUs};
 };
+
+std::uint32_t parse_u32(const char* p, const char* end) noexcept {
+  std::uint32_t v = 0;
+  for (; p < end && *p >= '0' && *p <= '9'; ++p)
+    v = v * 10 + static_cast<std::uint32_t>(*p - '0');
+  return v;
+}
 
 Options parse_options(const char* a) noexcept {
   Options o;
@@ -172,12 +208,8 @@ Options parse_options(const char* a) noexcept {
       o.core = false;
       o.records = false;
     }
-    if (len > 2 && w[0] == 'n' && w[1] == '=') {
-      std::uint32_t v = 0;
-      for (const char* p = w + 2; p < a && *p >= '0' && *p <= '9'; ++p)
-        v = v * 10 + static_cast<std::uint32_t>(*p - '0');
-      o.max_samples = v;
-    }
+    if (len > 2 && w[0] == 'n' && w[1] == '=') o.max_samples = parse_u32(w + 2, a);
+    if (len > 8 && std::strncmp(w, "tick_us=", 8) == 0) o.tick_us = parse_u32(w + 8, a);
   }
   return o;
 }
@@ -246,9 +278,155 @@ PowerCutResult power_cut_sweep(const std::uint8_t (&old_blob)[kBlobBytes],
   return r;
 }
 
+// ---- acquisition: the data-ready path ------------------------------------------------------
+
+// Bounded single-producer (tick handler) / single-consumer (main loop) ring. The consumer works
+// on the front element in place and releases it afterwards; indices are free-running.
+template <typename T, std::size_t N>
+class SpscQueue {
+  static_assert(N > 0 && (N & (N - 1)) == 0, "power of two");
+
+ public:
+  bool push(const T& v) noexcept {
+    const std::uint32_t h = head_.load(std::memory_order_relaxed);
+    if (h - tail_.load(std::memory_order_acquire) == N) return false;
+    buf_[h % N] = v;
+    head_.store(h + 1, std::memory_order_release);
+    return true;
+  }
+  const T* front() const noexcept {
+    const std::uint32_t t = tail_.load(std::memory_order_relaxed);
+    return head_.load(std::memory_order_acquire) == t ? nullptr : &buf_[t % N];
+  }
+  void pop_front() noexcept {
+    tail_.store(tail_.load(std::memory_order_relaxed) + 1, std::memory_order_release);
+  }
+  bool empty() const noexcept { return front() == nullptr; }
+
+ private:
+  T buf_[N];
+  std::atomic<std::uint32_t> head_{0};
+  std::atomic<std::uint32_t> tail_{0};
+};
+
+enum class AcqKind : std::uint8_t { kAttitude, kMagnetometer, kReadError };
+
+// A magnetometer sample with what the test scores it against (the scenario's scalar reference,
+// which also rides with it into the pipeline, and the true E/N/U field) and its acquisition time.
+struct MagEntry {
+  hal::MagnetometerSample s;
+  double f_nT;
+  double h_n_true_nT[3];
+  std::uint64_t acquired_us;
+};
+
+struct AcqEvent {
+  AcqKind kind{AcqKind::kReadError};
+  union {
+    hal::AttitudeSample att;
+    MagEntry mag;
+  };
+  AcqEvent() noexcept : mag{} {}
+};
+
+// Written by the tick handler only (the main loop reads them after `done`), except `consumed`
+// (main loop) and `solve_window` (main loop: a solve is pending, for the depth figure).
+struct Acquisition {
+  SpscQueue<AcqEvent, kAcqQueueEvents> queue;
+  std::uint32_t max_samples{0};
+  std::uint32_t samples{0}, not_fresh{0}, read_errors{0}, device_errors{0}, att_samples{0};
+  std::uint32_t lost_events{0};  // queue full: an event the main loop never sees (must stay 0)
+  std::uint32_t ticks{0};
+  std::uint32_t max_depth{0};        // most magnetometer samples waiting at once
+  std::uint32_t max_depth_solve{0};  // ... while a solve was pending
+  std::atomic<std::uint32_t> consumed{0};
+  std::atomic<bool> solve_window{false};
+  std::atomic<bool> done{false};
+};
+Acquisition g_acq;
+
+void push_event(const AcqEvent& e) noexcept {
+  if (!g_acq.queue.push(e)) ++g_acq.lost_events;
+}
+
+// One sample period: the world advances one magnetometer sample (simulated rig), then every INS
+// frame received by now and every magnetometer sample are read, in this order, as the interrupt
+// handlers of a board would (the tick handler; on the host, called by the main loop).
+void acquisition_tick() noexcept {
+  if (g_acq.done.load(std::memory_order_relaxed)) return;
+  ++g_acq.ticks;
+  if (g_acq.samples >= g_acq.max_samples || !g_rig.step()) {
+    board_stop_sample_clock();
+    g_acq.done.store(true, std::memory_order_release);
+    return;
+  }
+  AcqEvent e;
+  hal::AttitudeSample a;
+  for (int guard = 0; guard < 256 && g_ins.read(a, 0) == hal::Status::kOk; ++guard) {
+    ++g_acq.att_samples;
+    e.kind = AcqKind::kAttitude;
+    e.att = a;
+    push_event(e);
+  }
+  const sim::SimSample& truth = g_rig.last();
+  for (int guard = 0; guard < 8 && g_acq.samples < g_acq.max_samples; ++guard) {
+    MagEntry m{};
+    const hal::Status rs = g_adc.read(m.s, 0);
+    if (rs == hal::Status::kTimeout || rs == hal::Status::kNoData) break;
+    if (rs != hal::Status::kOk) {
+      ++g_acq.read_errors;
+      e.kind = AcqKind::kReadError;
+      push_event(e);
+      continue;
+    }
+    ++g_acq.samples;
+    if ((m.s.flags & hal::kMagNotFresh) != 0) ++g_acq.not_fresh;
+    if ((m.s.flags & hal::kMagInvalidMask) != 0) ++g_acq.device_errors;
+    m.f_nT = truth.f_nT;
+    for (int i = 0; i < 3; ++i)
+      m.h_n_true_nT[i] = truth.h_n_true_nT(i);
+    m.acquired_us = board_time_us();
+    e.kind = AcqKind::kMagnetometer;
+    e.mag = m;
+    push_event(e);
+    const std::uint32_t depth = g_acq.samples - g_acq.consumed.load(std::memory_order_relaxed);
+    g_acq.max_depth = std::max(g_acq.max_depth, depth);
+    if (g_acq.solve_window.load(std::memory_order_relaxed))
+      g_acq.max_depth_solve = std::max(g_acq.max_depth_solve, depth);
+  }
+}
+
+// Main loop: nothing to do until the next tick.
+bool acquisition_idle() noexcept {
+  return g_acq.queue.empty() && !g_acq.done.load(std::memory_order_acquire);
+}
+
+// ---- the calibrator's solve, off the per-sample path ---------------------------------------
+
+struct SolveJob {
+  bool pending{false};  // a ticket raised, result not installed yet
+  bool solved{false};
+  std::uint32_t ticket{0};
+  std::uint32_t ticket_record{0};  // the record (sample number) that raised the ticket
+  core::CalibratorSolve result{};
+  core::SensorModel<Scalar> model{};
+  // Figures: the solve's duration (board clock) and the samples that arrived meanwhile.
+  std::uint64_t solve_us{0};
+  std::uint32_t ticks_during{0};
+  std::uint32_t forced{0};  // solves the deadline had to run because the queue never emptied
+};
+
+void run_solve(SolveJob& job) noexcept {
+  const std::uint64_t t0 = board_time_us();
+  const std::uint32_t ticks0 = g_acq.ticks;
+  job.result = g_cal.solve(&job.model);
+  job.solve_us = board_time_us() - t0;
+  job.ticks_during = g_acq.ticks - ticks0;
+  job.solved = true;
+}
+
 struct Stats {
-  std::uint32_t samples{0}, not_fresh{0}, read_errors{0}, device_errors{0}, att_samples{0},
-      processed{0}, uncal_samples{0}, cal_samples{0}, hn_samples{0};
+  std::uint32_t processed{0}, uncal_samples{0}, cal_samples{0}, hn_samples{0};
   double sum_sq_f_uncal{0};  // intensity - F before a calibration is active (identity model)
   double sum_sq_f_cal{0};    // intensity - F with the stored calibration active
   double max_abs_f_cal{0};
@@ -282,8 +460,9 @@ struct TruthRing {
 // Loop milestones (sample numbers, 1-based, as counted by n=<k>): the insn counting windows.
 struct Milestones {
   std::uint32_t init_fit{0};  // the sample that completed the EKF's initial fit
-  std::uint32_t solve{0};     // the sample on which the calibrator's solve ran
+  std::uint32_t solve{0};     // the sample after which the solve's result was installed
   std::uint32_t applied{0};   // the sample on which the loop applied the calibration
+  std::uint32_t ready{0};     // the sample that raised the solve ticket (solved in idle time)
 };
 
 void report_vec(LineWriter& w, const char* key, const Scalar* v, int n) noexcept {
@@ -334,16 +513,22 @@ void report_model(LineWriter& w, const char* key, const core::SensorModel<Scalar
   report_vec(w, key, v, 16);
 }
 
-// End of the calibration: store, power-cut sweep, reload (as after a reboot), install.
-// Returns 0 or the exit code of the failed check.
-int store_and_reload(LineWriter& w, const std::uint8_t (&blob_old)[kBlobBytes]) noexcept {
-  int rc = 0;
-  std::uint8_t blob_new[kBlobBytes];
-  serialise(g_loop.active_model(), blob_new);
+// Power-cut sweep over storing blob_new on top of blob_old (a test of the flash store, run after
+// the stream: it is not sample-path work). Returns 0 or the exit code of the failed check.
+int report_power_cut_sweep(LineWriter& w, const std::uint8_t (&blob_old)[kBlobBytes],
+                           const std::uint8_t (&blob_new)[kBlobBytes]) noexcept {
   const PowerCutResult pc = power_cut_sweep(blob_old, blob_new);
   w.str("MV pcut trials=").u(pc.trials).str(" old=").u(pc.old_blob).str(" new=");
   w.u(pc.new_blob).str(" bad=").u(pc.bad).end();
-  if (pc.bad != 0 || pc.old_blob == 0 || pc.new_blob == 0) rc = 3;
+  return pc.bad != 0 || pc.old_blob == 0 || pc.new_blob == 0 ? 3 : 0;
+}
+
+// End of the calibration: store, reload (as after a reboot), install. Returns 0 or the exit code
+// of the failed check; blob_new: what was stored.
+int store_and_reload(LineWriter& w, const std::uint8_t (&blob_old)[kBlobBytes],
+                     std::uint8_t (&blob_new)[kBlobBytes]) noexcept {
+  int rc = 0;
+  serialise(g_loop.active_model(), blob_new);
   std::memset(g_flash_storage, 0xFF, sizeof g_flash_storage);
   drivers::FlashParamStore store(g_flash, kLayout);
   const bool stored =
@@ -407,7 +592,9 @@ int app_main(const char* args) noexcept {
   Stats st;
   Milestones ms;
   TruthRing truth_ring;
+  SolveJob job;
   bool stored = false;
+  std::uint8_t blob_new[kBlobBytes] = {};
   bool prev_init = g_cal.filter().initialised();
   core::CalState prev_state = g_loop.state();
   // Every record, in sample order, when the pipeline processes its sample (INS epochs bracket it
@@ -417,9 +604,27 @@ int app_main(const char* args) noexcept {
     // Milestones and the end of the calibration.
     if (!prev_init && g_cal.filter().initialised() && ms.init_fit == 0) ms.init_fit = st.processed;
     prev_init = g_cal.filter().initialised();
+    // A solve ticket: the main loop solves in idle time; the result goes in at a fixed record.
+    if (g_loop.state() == core::CalState::kSolving && g_loop.solve_ticket() != job.ticket) {
+      job.pending = true;
+      job.solved = false;
+      job.ticket = g_loop.solve_ticket();
+      job.ticket_record = st.processed;
+      if (ms.ready == 0) ms.ready = st.processed;
+      g_acq.solve_window.store(true, std::memory_order_relaxed);
+    }
+    if (job.pending && st.processed - job.ticket_record >= kSolveInstallRecords) {
+      if (!job.solved) {
+        ++job.forced;
+        run_solve(job);
+      }
+      job.pending = false;
+      g_acq.solve_window.store(false, std::memory_order_relaxed);
+      if (g_loop.install_solve(job.ticket, job.result, job.model) && ms.solve == 0)
+        ms.solve = st.processed;
+    }
     const core::CalState state = g_loop.state();
     if (state != prev_state) {
-      if (prev_state == core::CalState::kSolving) ms.solve = st.processed;
       if (state == core::CalState::kApplied) ms.applied = st.processed;
       if (state == core::CalState::kFailed) {
         w.str("MV cal_failed failure=").u(static_cast<std::uint64_t>(g_loop.failure()));
@@ -430,7 +635,7 @@ int app_main(const char* args) noexcept {
     }
     if (state == core::CalState::kApplied && !stored) {
       stored = true;
-      const int src = store_and_reload(w, blob_old);
+      const int src = store_and_reload(w, blob_old, blob_new);
       if (src != 0) rc = rc != 0 ? rc : src;
     }
 
@@ -457,34 +662,69 @@ int app_main(const char* args) noexcept {
     }
   };
 
-  while (st.samples < opt.max_samples && g_rig.step()) {
-    // INS: every epoch received by now (receive time on the CAN clock) into the pipeline.
-    hal::AttitudeSample a;
-    for (int guard = 0; guard < 256 && g_ins.read(a, 0) == hal::Status::kOk; ++guard) {
-      ++st.att_samples;
-      if (opt.core) g_pipeline.on_attitude(a, on_record);
-    }
-    const sim::SimSample& truth = g_rig.last();
-    for (int guard = 0; guard < 8 && st.samples < opt.max_samples; ++guard) {
-      hal::MagnetometerSample s;
-      const hal::Status rs = g_adc.read(s, 0);
-      if (rs == hal::Status::kTimeout || rs == hal::Status::kNoData) break;
-      if (rs != hal::Status::kOk) {
-        ++st.read_errors;
+  // Latency of a magnetometer sample: from its acquisition to the end of its pipeline call
+  // (queue wait + its own processing), worst overall and while a solve was pending.
+  std::uint64_t max_latency_us = 0;
+  std::uint64_t max_latency_solve_us = 0;
+  auto consume = [&](const AcqEvent& e) noexcept {
+    switch (e.kind) {
+      case AcqKind::kAttitude:
+        if (opt.core) g_pipeline.on_attitude(e.att, on_record);
+        break;
+      case AcqKind::kReadError:
         if (opt.core) g_pipeline.on_read_error();
-        continue;
+        break;
+      case AcqKind::kMagnetometer: {
+        const MagEntry& m = e.mag;
+        const bool solving = job.pending;
+        if (opt.core) {
+          if (opt.records) {
+            truth_ring.put(
+                m.s.t_us, m.f_nT,
+                core::Vec3<double>(m.h_n_true_nT[0], m.h_n_true_nT[1], m.h_n_true_nT[2]));
+          }
+          // The scenario's scalar reference channel rides with the sample.
+          g_pipeline.on_magnetometer(m.s, static_cast<Scalar>(m.f_nT), on_record);
+        }
+        g_acq.consumed.fetch_add(1, std::memory_order_relaxed);
+        const std::uint64_t latency = board_time_us() - m.acquired_us;
+        max_latency_us = std::max(max_latency_us, latency);
+        if (solving || job.pending) max_latency_solve_us = std::max(max_latency_solve_us, latency);
+        break;
       }
-      ++st.samples;
-      if ((s.flags & hal::kMagNotFresh) != 0) ++st.not_fresh;
-      if ((s.flags & hal::kMagInvalidMask) != 0) ++st.device_errors;
-      if (!opt.core) continue;
-      if (opt.records) truth_ring.put(s.t_us, truth.f_nT, truth.h_n_true_nT);
-      // The scenario's scalar reference channel rides with the sample.
-      g_pipeline.on_magnetometer(s, static_cast<Scalar>(truth.f_nT), on_record);
+    }
+  };
+
+  g_acq.max_samples = opt.max_samples;
+  const bool clocked = board_start_sample_clock(opt.tick_us, &acquisition_tick);
+  for (;;) {
+    for (const AcqEvent* e = g_acq.queue.front(); e != nullptr; e = g_acq.queue.front()) {
+      consume(*e);
+      g_acq.queue.pop_front();
+    }
+    // Idle time: the pending solve (preempted by the ticks; samples wait in the queue).
+    if (job.pending && !job.solved) {
+      run_solve(job);
+      continue;
+    }
+    if (g_acq.done.load(std::memory_order_acquire)) {
+      if (g_acq.queue.empty()) break;
+      continue;
+    }
+    if (clocked) {
+      board_wait_for_interrupt(&acquisition_idle);
+    } else {
+      acquisition_tick();
     }
   }
   // End of the stream (or of n=<k>): every sample read gets its record.
   if (opt.core) g_pipeline.flush(on_record);
+  // A ticket the flush raised is solved too (idle time after the stream; not installed).
+  if (job.pending && !job.solved) run_solve(job);
+  if (stored) {
+    const int prc = report_power_cut_sweep(w, blob_old, blob_new);
+    if (prc != 0) rc = rc != 0 ? rc : prc;
+  }
 
   const auto& ekf = g_cal.filter();
   const core::EkfCounters& ec = ekf.counters();
@@ -498,11 +738,23 @@ int app_main(const char* args) noexcept {
   w.str(" dropouts=").u(lh.dropouts).str(" device_errors=").u(lh.device_errors);
   w.str(" no_attitude=").u(lh.no_attitude).str(" align_samples=").u(g_cal.align_samples()).end();
   w.str("MV milestones init_fit=").u(ms.init_fit).str(" solve=").u(ms.solve);
-  w.str(" applied=").u(ms.applied).end();
-  w.str("MV counts samples=").u(st.samples).str(" read_errors=").u(st.read_errors);
-  w.str(" not_fresh=").u(st.not_fresh).str(" device_errors=").u(st.device_errors);
-  w.str(" att=").u(st.att_samples).str(" records=").u(sink.emitted());
+  w.str(" applied=").u(ms.applied).str(" ready=").u(ms.ready).end();
+  w.str("MV counts samples=").u(g_acq.samples).str(" read_errors=").u(g_acq.read_errors);
+  w.str(" not_fresh=").u(g_acq.not_fresh).str(" device_errors=").u(g_acq.device_errors);
+  w.str(" att=").u(g_acq.att_samples).str(" records=").u(sink.emitted());
   w.str(" record_failures=").u(sink.failed()).end();
+  // Produced vs consumed samples and lost events are exact; the depths, latencies and the
+  // solve's duration depend on the board's clock (host: none, polled, so zero).
+  w.str("MV acq clock=").u(clocked ? 1 : 0).str(" tick_us=").u(clocked ? opt.tick_us : 0);
+  w.str(" produced=").u(g_acq.samples).str(" consumed=");
+  w.u(g_acq.consumed.load(std::memory_order_relaxed)).str(" lost=").u(g_acq.lost_events);
+  w.str(" max_depth=").u(g_acq.max_depth).str(" max_depth_solving=").u(g_acq.max_depth_solve);
+  w.str(" max_latency_us=").u(max_latency_us).str(" max_latency_solving_us=");
+  w.u(max_latency_solve_us).end();
+  w.str("MV solve ticket=").u(job.ticket).str(" solve_us=").u(job.solve_us);
+  w.str(" ticks_during=").u(job.ticks_during).str(" forced=").u(job.forced).end();
+  if (g_acq.lost_events != 0 || g_acq.consumed.load(std::memory_order_relaxed) != g_acq.samples)
+    rc = rc != 0 ? rc : 7;
   const pipeline::DeviceCounters& pc = g_pipeline.counters();
   w.str("MV pipeline records=").u(pc.records).str(" att_rejected=").u(pc.att_rejected);
   w.str(" att_gaps=").u(pc.att_gaps).str(" mag_missing=").u(pc.mag_missing);

@@ -32,6 +32,15 @@ hal::SerialPort& board_record_port(bool /*uart*/) noexcept {
 const char* board_name() noexcept {
   return "host";
 }
+// No sample clock: the application acquires from its main loop, in the same order.
+bool board_start_sample_clock(std::uint32_t, void (*)()) noexcept {
+  return false;
+}
+void board_stop_sample_clock() noexcept {}
+std::uint64_t board_time_us() noexcept {
+  return 0;
+}
+void board_wait_for_interrupt(bool (*)()) noexcept {}
 }  // namespace magvec::app
 
 int main(int argc, char** argv) {

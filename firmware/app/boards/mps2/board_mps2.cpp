@@ -10,6 +10,7 @@
 
 #include "magvec/app/board.hpp"
 #include "magvec/app/mmio_uart.hpp"
+#include "magvec/app/systick.hpp"
 
 namespace {
 
@@ -57,6 +58,9 @@ class SemihostingPort final : public magvec::hal::SerialPort {
 
 SemihostingPort g_semihosting;
 constinit magvec::app::CmsdkUart g_uart0(magvec::app::CmsdkUart::kMps2Uart0);
+// qemu's mps2 boards feed SysTick's reference clock input at 1 MHz: one count per microsecond.
+constexpr std::uint32_t kRefClkCountsPerUs = 1;
+magvec::app::SysTickClock g_clock;
 
 }  // namespace
 
@@ -74,7 +78,23 @@ hal::SerialPort& board_record_port(bool uart) noexcept {
 const char* board_name() noexcept {
   return MAGVEC_BOARD_NAME;
 }
+bool board_start_sample_clock(std::uint32_t period_us, void (*tick)()) noexcept {
+  return g_clock.start(period_us, kRefClkCountsPerUs, false, tick);
+}
+void board_stop_sample_clock() noexcept {
+  g_clock.stop();
+}
+std::uint64_t board_time_us() noexcept {
+  return g_clock.time_us();
+}
+void board_wait_for_interrupt(bool (*idle)()) noexcept {
+  wait_for_interrupt_unless_busy(idle);
+}
 }  // namespace magvec::app
+
+extern "C" void SysTick_Handler(void) {
+  g_clock.on_interrupt();
+}
 
 extern "C" void magvec_board_early_init(void) {
   static const char kTt[] = ":tt";

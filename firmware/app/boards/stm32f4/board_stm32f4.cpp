@@ -7,6 +7,7 @@
 
 #include "magvec/app/board.hpp"
 #include "magvec/app/mmio_uart.hpp"
+#include "magvec/app/systick.hpp"
 
 namespace {
 
@@ -16,6 +17,7 @@ constexpr std::uint32_t kHsiHz = 16'000'000u;  // APB1 = HSI after reset (no PLL
 constexpr std::uint32_t kBaud = 115'200u;
 
 constinit magvec::app::Stm32Usart g_usart2(magvec::app::Stm32Usart::kUsart2);
+magvec::app::SysTickClock g_clock;  // on the processor clock (HSI, 16 counts per microsecond)
 
 }  // namespace
 
@@ -31,7 +33,23 @@ hal::SerialPort& board_record_port(bool /*uart*/) noexcept {
 const char* board_name() noexcept {
   return "stm32f4";
 }
+bool board_start_sample_clock(std::uint32_t period_us, void (*tick)()) noexcept {
+  return g_clock.start(period_us, kHsiHz / 1'000'000u, true, tick);
+}
+void board_stop_sample_clock() noexcept {
+  g_clock.stop();
+}
+std::uint64_t board_time_us() noexcept {
+  return g_clock.time_us();
+}
+void board_wait_for_interrupt(bool (*idle)()) noexcept {
+  magvec::app::wait_for_interrupt_unless_busy(idle);
+}
 }  // namespace magvec::app
+
+extern "C" void SysTick_Handler(void) {
+  g_clock.on_interrupt();
+}
 
 extern "C" void magvec_board_early_init(void) {
   using magvec::app::mmio32;

@@ -7,6 +7,7 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
 
 #include "magvec/hal/serial_port.hpp"
 
@@ -20,6 +21,17 @@ void board_write(const char* s, std::size_t n) noexcept;
 hal::SerialPort& board_record_port(bool uart) noexcept;
 // Board name reported in the output.
 const char* board_name() noexcept;
+
+// Sample clock: a periodic interrupt standing in for the devices' data-ready lines (the ADC's
+// DRDY, CAN receive). tick() runs in interrupt context every period_us. False when the board has
+// none (host): the application then acquires from its main loop (polled).
+bool board_start_sample_clock(std::uint32_t period_us, void (*tick)()) noexcept;
+void board_stop_sample_clock() noexcept;
+// Microseconds since the sample clock started (0 without one): latency figures only.
+std::uint64_t board_time_us() noexcept;
+// Sleeps until the next interrupt unless idle() returns false (checked with interrupts masked, so
+// no wake-up is lost). Returns at once on a board without a sample clock.
+void board_wait_for_interrupt(bool (*idle)()) noexcept;
 
 // The application: runs the compiled-in scenario and reports. `args` is a space-separated
 // option list (see app_main.cpp); returns the process exit code (0 = every check passed).

@@ -365,6 +365,7 @@ Config parse_config(const std::string& text, const std::string& source) {
   sim.one_of("scenario", &c.sim.scenario, {"li2023", "survey"});
   sim.integer("seed", &c.sim.seed, 0, std::numeric_limits<std::int64_t>::max());
   sim.integer("samples_per_attitude", &c.sim.samples_per_attitude, 1, 1'000'000);
+  sim.integer("wake_period_us", &c.sim.wake_period_us, 0, 1'000'000);
   sim.check_unknown();
 
   top.check_unknown();

@@ -28,6 +28,7 @@ class SimDevices final : public Devices {
       : sim_(sim_scenario(c), c.sim.seed),
         front_(sim_, sim_rig_config(c)),
         period_us_(1e6 / c.magnetometer.rate_hz),
+        wake_period_us_(c.sim.wake_period_us),
         wait_(std::move(wait)),
         now_(std::move(now)),
         t0_us_(now_()) {
@@ -44,7 +45,14 @@ class SimDevices final : public Devices {
         t0_us_ + static_cast<std::uint64_t>(static_cast<double>(steps_) * period_us_);
     const std::uint64_t now = now_();
     if (now < due) {
-      wait_(static_cast<std::uint32_t>(std::min<std::uint64_t>(due - now, max_wait_us)));
+      // With a wake period, the wake-up is the first multiple of it (from t0) at or after the
+      // due time, and every conversion due by then is stepped before the next wait.
+      std::uint64_t wake = due;
+      if (wake_period_us_ != 0) {
+        const std::uint64_t k = (due - t0_us_ + wake_period_us_ - 1) / wake_period_us_;
+        wake = t0_us_ + k * wake_period_us_;
+      }
+      wait_(static_cast<std::uint32_t>(std::min<std::uint64_t>(wake - now, max_wait_us)));
       return true;
     }
     if (now - due > 1'000'000) {
@@ -81,6 +89,7 @@ class SimDevices final : public Devices {
   drivers::sim::Simulator sim_;
   hil::SimFrontEnd front_;
   double period_us_;
+  std::uint64_t wake_period_us_;
   WaitFn wait_;
   NowFn now_;
   std::uint64_t t0_us_;

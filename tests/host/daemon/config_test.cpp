@@ -121,6 +121,16 @@ TEST(DaemonConfigLcm, RawBatchIsAnIntegerInItsRange) {
   EXPECT_EQ(error_of("[lcm]\nraw_batc = 10\n"), "cfg.toml: lcm.raw_batc: unknown key");
 }
 
+TEST(DaemonConfigSim, WakePeriodIsBounded) {
+  EXPECT_EQ(parse_config("", "cfg.toml").sim.wake_period_us, 0u);
+  EXPECT_EQ(parse_config("[sim]\nwake_period_us = 10000\n", "cfg.toml").sim.wake_period_us,
+            10'000u);
+  EXPECT_EQ(error_of("[sim]\nwake_period_us = -1\n"),
+            "cfg.toml: sim.wake_period_us: out of range [0, 1000000]");
+  EXPECT_EQ(error_of("[sim]\nwake_period_us = 1.5\n"),
+            "cfg.toml: sim.wake_period_us: expected an integer");
+}
+
 // The batch has its own channel: a reader decodes a channel as one type.
 TEST(DaemonConfigLcm, RawBatchChannelDiffersFromTheSampleChannel) {
   EXPECT_EQ(parse_config("", "cfg.toml").lcm.channels.raw_mag_batch, "MAGVEC_RAW_MAG_BATCH");

@@ -55,6 +55,41 @@ TEST(SimDevices, OneStepPerPeriodOfTheClock) {
   EXPECT_EQ(d->mag_counters().samples, static_cast<std::uint64_t>(11));
 }
 
+// sim.wake_period_us: one wait per wake period instead of one per conversion, and the very same
+// samples in the same order (a fake clock that jumps to the end of each wait).
+TEST(SimDevices, AWakePeriodDeliversTheSameSamplesWithFewerWaits) {
+  auto run = [](std::uint32_t wake_period_us, int* waits) {
+    Config c = parse_config("", "test");
+    c.magnetometer.rate_hz = 1000;
+    c.sim.wake_period_us = wake_period_us;
+    std::uint64_t now = 2'000'000;
+    *waits = 0;
+    auto d = open_sim_devices(
+        c,
+        [&](std::uint32_t us) {
+          ++*waits;
+          now += us;
+        },
+        [&] { return now; });
+    Counter h;
+    while (h.mags < 1000)
+      EXPECT_TRUE(d->poll(h, 20'000));
+    return h;
+  };
+  int waits_each = 0, waits_10ms = 0, waits_2500us = 0;
+  const Counter each = run(0, &waits_each);
+  const Counter every_10ms = run(10'000, &waits_10ms);
+  const Counter every_2500us = run(2'500, &waits_2500us);
+  EXPECT_EQ(each.mag_t_us, every_10ms.mag_t_us);
+  EXPECT_EQ(each.mag_t_us, every_2500us.mag_t_us);
+  EXPECT_EQ(each.atts, every_10ms.atts);
+  EXPECT_GE(waits_each, 999);
+  EXPECT_LE(waits_10ms, 101);
+  EXPECT_GE(waits_10ms, 99);
+  EXPECT_LE(waits_2500us, 401);
+  EXPECT_GE(waits_2500us, 399);
+}
+
 TEST(SimDevices, AStallOfMoreThanASecondIsNotReplayedAtFullSpeed) {
   Config c = parse_config("", "test");
   c.magnetometer.rate_hz = 100;

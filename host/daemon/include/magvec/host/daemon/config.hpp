@@ -88,6 +88,10 @@ struct SimConfig {
   std::string scenario{"li2023"};  // li2023 (random attitudes) | survey
   std::uint64_t seed{1};
   std::uint32_t samples_per_attitude{10};
+  // Host pacing of the simulated devices. 0: one wake-up per conversion at its due time (a
+  // data-ready driven ADC). P > 0: one wake-up every P us that delivers every conversion due by
+  // then (a device read in blocks: FIFO, serial burst). Same samples, same order, same outputs.
+  std::uint32_t wake_period_us{0};
 };
 
 struct DaemonSection {

@@ -43,9 +43,10 @@ class Devices {
   virtual std::string describe() const = 0;
 };
 
-// The simulated rig of `c` (sim_setup.hpp), one step per magnetometer period of `now`: a step is
-// taken when it is due; more than 1 s behind, the schedule restarts from now (a stalled process
-// does not replay the backlog at full speed). Throws DaemonError(kExitDevice).
+// The simulated rig of `c` (sim_setup.hpp), one step per magnetometer period of `now` (waking at
+// each step's due time, or with sim.wake_period_us every that often for the steps due by then): a
+// step is taken when it is due; more than 1 s behind, the schedule restarts from now (a stalled
+// process does not replay the backlog at full speed). Throws DaemonError(kExitDevice).
 std::unique_ptr<Devices> open_sim_devices(const Config& c, WaitFn wait, NowFn now);
 // The real devices of `c`. Throws DaemonError(kExitDevice) naming the device that failed.
 std::unique_ptr<Devices> open_real_devices(const Config& c, WaitFn wait);

@@ -1,20 +1,31 @@
 // VM system test: magvecd end to end on real Linux drivers inside the guest.
-// A "rig" in this process plays the Li 2023 scenario (drivers/sim Simulator + SimRig, fixed seed)
-// in real time through the guest kernel's devices:
-//   - INS: SimSbgIns's SBG CAN frames of each epoch, sent on vcan0 through a SocketCAN socket;
+// A "rig" in this process plays the simulator's continuous-rotation scenario (drivers/sim
+// scenario_rotation, rates set below, fixed seed) in real time through the guest kernel's devices,
+// as the hardware would deliver it:
+//   - INS: SimSbgIns's SBG CAN frames of each 100 Hz epoch, sent on vcan0 through a SocketCAN
+//     socket kInsLatencyUs after the epoch's time (the INS's output latency; the daemon's
+//     latency_comp_us is set to it), so the epochs that bracket a magnetometer sample arrive after
+//     it and the daemon interpolates within its fusion horizon;
 //   - ADC: SimAds131Device's channel codes of each conversion (read back from a simulated frame, so
 //     the encoding is the simulator's, inverse of the daemon's transfer coefficients), written to
 //     /dev/magvec_adc_feed, whose FIFO the virtual ADS131M04 (toolchain/vm/magvec_vspi.c) serves
 //     on /dev/spidev0.0, one conversion per data frame;
-//   - DRDY: a falling edge on the gpio-sim line (its `pull` attribute) once the codes are latched.
-// magvecd runs in real mode (spidev + libgpiod + SocketCAN) and publishes on LCM udpm over the
-// guest's loopback; this process subscribes. The same scenario is run with simulated drivers
-// (hil::SimFrontEnd, exactly what `magvecd --sim` and the host HIL session use) as fast as
-// possible; the checks compare the daemon's compensated E/N/U and |h| errors against the truth
-// with that reference's (within the noise; never bit-identical: real pacing and kernel timestamps).
+//   - DRDY: a falling edge on the gpio-sim line (its `pull` attribute) once the codes are queued.
+// The rig thread runs SCHED_FIFO above the daemon (as hardware events do not wait for software).
+// magvecd runs in real mode (spidev + libgpiod + SocketCAN, realtime on, the li solve on its
+// worker thread) and publishes on LCM udpm over the guest's loopback; this process subscribes.
+// Checks: each conversion has exactly one output (matched by its DRDY time stamp and its raw
+// reading) and no conversion was read after the next one was queued (what a real ADC's single
+// result latch would have lost), also while the solve ran; the calibrated E/N/U against the
+// simulator's TRUE attitude and field within 1.3x the floor computed from the true attitude and
+// the configured noise (tests/host/hil/enu_floor.hpp, the HIL tests' floor), |h| within the
+// magnetometer noise of the true model's own intensity error. Latencies are printed, never
+// asserted.
 // Each check is its own test case; the run happens once, in SetUpTestSuite.
 #include <fcntl.h>
 #include <gtest/gtest.h>
+#include <pthread.h>
+#include <sched.h>
 #include <signal.h>
 #include <sys/stat.h>
 #include <sys/wait.h>
@@ -29,8 +40,10 @@
 #include <cstdint>
 #include <cstdio>
 #include <cstring>
+#include <deque>
 #include <fstream>
 #include <lcm/lcm-cpp.hpp>
+#include <limits>
 #include <memory>
 #include <mutex>
 #include <sstream>
@@ -38,31 +51,57 @@
 #include <thread>
 #include <vector>
 
+#include "host/hil/enu_floor.hpp"
+#include "magvec/core/compensator.hpp"
 #include "magvec/core/sensor_loop.hpp"
 #include "magvec/drivers/ads131m04.hpp"
 #include "magvec/drivers/linux/socketcan_bus.hpp"
 #include "magvec/drivers/sim/sim_devices.hpp"
 #include "magvec/drivers/sim/simulator.hpp"
 #include "magvec/host/daemon/config.hpp"
-#include "magvec/host/daemon/pipeline.hpp"
 #include "magvec/host/daemon/sim_setup.hpp"
-#include "magvec/host/hil/hil_session.hpp"
 #include "magvec_lcm/attitude.hpp"
 #include "magvec_lcm/calibrated_vector.hpp"
 #include "magvec_lcm/calibration_state.hpp"
 #include "magvec_lcm/health.hpp"
+#include "magvec_lcm/mag_sample.hpp"
+#include "magvec_lcm/pipeline_event.hpp"
 #include "vm_env.hpp"
 
 namespace {
 
 using magvec::vmtest::env;
+using magvec::vmtest::read_sysfs_number;
 
-constexpr double kRateHz = 50.0;         // magnetometer and INS (sustainable under TCG)
-constexpr std::uint32_t kSamples = 750;  // 15 s of scenario
+constexpr double kRateHz = 45.0;  // magnetometer: not a divisor of the INS rate, so the samples
+                                  // fall at varying fractions between INS epochs
+constexpr double kInsRateHz = 100.0;
+constexpr std::uint32_t kInsLatencyUs = 10'000;  // INS epoch time -> its frames on the bus
+constexpr std::uint32_t kHorizonUs = 50'000;     // >= INS period + latency + guest jitter
+constexpr std::uint32_t kSamples = 720;          // 16 s of scenario
+constexpr double kStartS = 0.1;                  // scenario time of the first sample
 constexpr std::uint64_t kSeed = 7;
+// Rotation like a calibration manoeuvre: heading 30 deg/s, pitch +-40 deg and roll +-35 deg both
+// peaking at 60 deg/s. The tilts take the field's direction in the sensor frame (inclination 62
+// deg) across the li calibrator's coverage threshold (10 of 32 cells) after ~5 s; the simulator's
+// default +-30/+-20 deg never do.
+constexpr double kHeadingRateDegS = 30.0;
+constexpr double kPitchAmpDeg = 40.0;
+constexpr double kRollAmpDeg = 35.0;
+constexpr double kPeakTiltRateDegS = 60.0;
+// A rig event later than this restarts the schedule from now (counted): a VM stall must not send
+// the missed events as a burst (the conversions whose INS epochs and edge it put on two time
+// bases are not scored: see rig_time_error_us).
+constexpr std::uint64_t kLateNs = 2'000'000;
+// The rig sleeps until this long before an event, does what is not time-critical (queues the
+// conversion's codes, sends the epoch's frames but its attitude frame), then spins to the due
+// time and makes the one time-stamped write: a wake-up under emulation is a few hundred us late,
+// and at 60 deg/s 100 us of stamp error is an attitude error of 0.006 deg (the INS noise is
+// 0.015 deg).
+constexpr std::uint64_t kSpinNs = 1'000'000;
 constexpr const char* kUrl = "udpm://239.255.76.67:7667?ttl=0";
 constexpr const char* kWork = "/tmp/magvecd_vm";
-constexpr std::uint32_t kNoAttitudeFlag = magvec::core::kOutNoAttitude;
+constexpr double kPi = 3.14159265358979323846;
 
 std::uint64_t mono_ns() {
   timespec ts{};
@@ -86,128 +125,112 @@ std::string read_file(const std::string& path) {
   return ss.str();
 }
 
-// Error statistics of compensated outputs against the true field (post-calibration only).
-struct ErrorStats {
-  std::size_t n{0};
-  std::array<double, 3> mean{};  // E, N, U (nT)
-  std::array<double, 3> rms{};
-  double f_mean{0};  // |h| - |h_true|
-  double f_rms{0};
-};
-
-struct OutputSample {
-  std::array<double, 3> enu{};
-  double f{0};
-  std::uint32_t flags{0};
-  std::int32_t cal_id{0};
-  std::int64_t t_us{0};
-};
-
-ErrorStats error_stats(const std::vector<OutputSample>& v, const Eigen::Vector3d& h_true) {
-  ErrorStats s;
-  const double f_true = h_true.norm();
-  for (const OutputSample& o : v) {
-    if (o.cal_id < 1 || (o.flags & kNoAttitudeFlag) != 0 || !std::isfinite(o.f)) continue;
-    ++s.n;
-    for (int i = 0; i < 3; ++i) {
-      const double e = o.enu[static_cast<std::size_t>(i)] - h_true[i];
-      s.mean[static_cast<std::size_t>(i)] += e;
-      s.rms[static_cast<std::size_t>(i)] += e * e;
-    }
-    s.f_mean += o.f - f_true;
-    s.f_rms += (o.f - f_true) * (o.f - f_true);
-  }
-  if (s.n == 0) return s;
-  const double n = static_cast<double>(s.n);
-  for (std::size_t i = 0; i < 3; ++i) {
-    s.mean[i] /= n;
-    s.rms[i] = std::sqrt(s.rms[i] / n);
-  }
-  s.f_mean /= n;
-  s.f_rms = std::sqrt(s.f_rms / n);
-  return s;
-}
-
-std::string describe(const ErrorStats& s) {
-  char buf[256];
-  std::snprintf(buf, sizeof buf,
-                "n=%zu mean E/N/U %.2f %.2f %.2f rms %.2f %.2f %.2f nT, |h| mean %.3f rms %.3f nT",
-                s.n, s.mean[0], s.mean[1], s.mean[2], s.rms[0], s.rms[1], s.rms[2], s.f_mean,
-                s.f_rms);
-  return buf;
+magvec::drivers::sim::ScenarioConfig scenario() {
+  magvec::drivers::sim::ScenarioConfig sc = magvec::drivers::sim::scenario_rotation();
+  sc.rate_hz = kRateHz;
+  sc.num_samples = kSamples;
+  // The INS epochs run from t = 0: the first samples have epochs before them to interpolate from.
+  sc.start_time_s = kStartS;
+  sc.rotation.heading_rate_deg_s = kHeadingRateDegS;
+  sc.rotation.pitch_amp_deg = kPitchAmpDeg;
+  sc.rotation.pitch_period_s = 2 * kPi * kPitchAmpDeg / kPeakTiltRateDegS;
+  sc.rotation.roll_amp_deg = kRollAmpDeg;
+  sc.rotation.roll_period_s = 2 * kPi * kRollAmpDeg / kPeakTiltRateDegS;
+  return sc;
 }
 
 std::string config_text(double reference_nT) {
   char buf[2048];
   std::snprintf(buf, sizeof buf,
-                "[daemon]\nstate_dir = \"%s/state\"\nrealtime = false\nhealth_period_s = 1.0\n"
+                "[daemon]\nstate_dir = \"%s/state\"\nrealtime = true\nhealth_period_s = 1.0\n"
                 "status_period_s = 0.5\n[lcm]\nurl = \"%s\"\n"
                 "[devices.magnetometer]\nlink = \"spi\"\nrate_hz = %.1f\nspi_device = \"%s\"\n"
                 "drdy_chip = \"%s\"\ndrdy_line = %s\n"
-                "[devices.ins]\ncan_interface = \"%s\"\nrate_hz = %.1f\nfusion_horizon_us = 0\n"
+                "[devices.ins]\ncan_interface = \"%s\"\nrate_hz = %.1f\nlatency_comp_us = %u\n"
+                "fusion_horizon_us = %u\n"
                 "[calibration]\nmode = \"li\"\nli_min_samples = 100\nvalidation_samples = 100\n"
-                "reference_field_nT = %.6f\n"
-                "[sim]\nscenario = \"li2023\"\nseed = %llu\nsamples_per_attitude = 1\n",
+                "reference_field_nT = %.6f\nsolve_on_worker = true\n",
                 kWork, kUrl, kRateHz, env("MAGVEC_TEST_SPIDEV", "/dev/spidev0.0").c_str(),
                 env("MAGVEC_TEST_GPIOCHIP").c_str(), env("MAGVEC_TEST_GPIO_LINE", "0").c_str(),
-                env("MAGVEC_TEST_CAN", "vcan0").c_str(), kRateHz, reference_nT,
-                static_cast<unsigned long long>(kSeed));
+                env("MAGVEC_TEST_CAN", "vcan0").c_str(), kInsRateHz, kInsLatencyUs, kHorizonUs,
+                reference_nT);
   return buf;
 }
 
-magvec::drivers::sim::ScenarioConfig scenario(const magvec::host::daemon::Config& c) {
-  magvec::drivers::sim::ScenarioConfig sc = magvec::host::daemon::sim_scenario(c);
-  sc.num_samples = kSamples;
-  return sc;
-}
-
-// The reference: the same scenario through the simulated drivers and the daemon's own pipeline,
-// as magvecd --sim runs it (calibration started at the first sample), as fast as possible.
-struct CollectSink final : magvec::hal::RecordSink {
-  std::vector<OutputSample> out;
-  magvec::hal::Status emit(const magvec::hal::OutputRecord& r) noexcept override {
-    OutputSample o;
-    o.enu = r.h_n_nT;
-    o.f = r.f_nT;
-    o.flags = r.flags;
-    o.cal_id = static_cast<std::int32_t>(r.cal_id);
-    o.t_us = static_cast<std::int64_t>(r.t_us);
-    out.push_back(o);
-    return magvec::hal::Status::kOk;
-  }
+struct OutputSample {
+  std::array<double, 3> raw{};
+  std::array<double, 3> enu{};
+  double f{0};
+  std::uint32_t flags{0};
+  std::int32_t cal_id{0};
+  std::int64_t t_us{0};
+  std::uint64_t rx_us{0};  // when this process received it (guest monotonic)
 };
 
-struct Run {
+struct RawSample {
+  std::int64_t t_us{0};
+  std::uint64_t rx_us{0};
+};
+
+// What the rig did for one conversion.
+struct RigSample {
+  double t_s{0};                      // scenario time
+  magvec::core::Vec3<double> m_nT{};  // the reading the codes carry
+  std::uint64_t due_us{0};            // DRDY edge due (guest monotonic)
+  std::uint64_t pull_us{0};           // just before the falling edge was written
+};
+
+struct VmRun {
   bool ran{false};
   std::string setup_error;
   std::string daemon_stderr;
   int exit_status{-1};
   double stop_ms{-1};
   bool cal_file{false};
+  bool rig_realtime{false};
+  // DRDY path: the kernel stamps of the daemon's raw samples less the rig's writes of their
+  // edges, median of the last 31 (the subscriber computes it; the rig reads it).
+  std::mutex pull_mu;
+  std::deque<std::uint64_t> pulls;  // rig's DRDY writes not yet matched (guest monotonic us)
+  std::deque<double> drdy_paths;
+  std::atomic<double> drdy_path_us{0};
   double rig_seconds{0};
-  std::uint32_t late_steps{0};  // rig steps more than half a period late (schedule restarted)
+  std::vector<double> restarts_s;  // scenario times where the rig restarted its schedule
+  std::uint32_t late_events{0};    // time-stamped writes more than 50 us late (no restart)
   std::uint64_t can_frames{0};
-  std::uint32_t can_not_looped{0};  // epochs whose frames the rig's listener did not see
+  std::uint32_t epochs{0};
+  std::uint64_t can_looped{0};  // CAN frames the rig's listener received
+  // Per INS epoch number: when its attitude frame was due on the bus and the kernel's receive
+  // stamp of it (guest monotonic us; 0 when not seen).
+  struct EpochSent {
+    std::uint64_t due_us{0};
+    std::uint64_t stamp_us{0};
+    std::uint64_t send_us{0};  // just before its attitude frame was sent
+  };
+  std::vector<EpochSent> epochs_sent;
   std::uint32_t fed{0};
+  long long vspi_fed{-1}, vspi_frames{-1}, vspi_overruns{-1}, vspi_max_queued{-1};
+  std::vector<RigSample> samples;
   std::vector<OutputSample> outputs;
+  std::vector<RawSample> raws;
   std::vector<magvec_lcm::calibration_state> states;
-  std::vector<magvec_lcm::attitude> attitudes;
+  std::vector<std::pair<std::uint64_t, std::uint64_t>> solves;  // [solving seen, result seen] us
+  std::size_t attitudes{0};
   magvec_lcm::health health{};
   bool have_health{false};
-  std::vector<OutputSample> reference;
-  Eigen::Vector3d h_true{Eigen::Vector3d::Zero()};
-  bool h_constant{true};
 };
 
-Run g_run;
+VmRun g_run;
 
 class Subscriber {
  public:
-  explicit Subscriber(Run& run) : run_(run), lcm_(kUrl) {}
+  explicit Subscriber(VmRun& run) : run_(run), lcm_(kUrl) {}
   bool good() { return lcm_.good(); }
   void start() {
     lcm_.subscribe("MAGVEC_OUTPUT", &Subscriber::on_output, this);
+    lcm_.subscribe("MAGVEC_RAW_MAG", &Subscriber::on_raw, this);
     lcm_.subscribe("MAGVEC_CAL_STATE", &Subscriber::on_state, this);
+    lcm_.subscribe("MAGVEC_PIPELINE", &Subscriber::on_event, this);
     lcm_.subscribe("MAGVEC_ATTITUDE", &Subscriber::on_attitude, this);
     lcm_.subscribe("MAGVEC_HEALTH", &Subscriber::on_health, this);
     thread_ = std::thread([this] {
@@ -221,11 +244,15 @@ class Subscriber {
   }
 
  private:
+  static std::uint64_t now_us() { return mono_ns() / 1000; }
   void on_output(const lcm::ReceiveBuffer*, const std::string&,
                  const magvec_lcm::calibrated_vector* m) {
     OutputSample o;
-    for (std::size_t i = 0; i < 3; ++i)
+    o.rx_us = now_us();
+    for (std::size_t i = 0; i < 3; ++i) {
+      o.raw[i] = m->raw_nT[i];
       o.enu[i] = m->h_enu_nT[i];
+    }
     o.f = m->f_nT;
     o.flags = static_cast<std::uint32_t>(m->flags);
     o.cal_id = m->cal_id;
@@ -233,15 +260,47 @@ class Subscriber {
     std::lock_guard<std::mutex> lock(mu_);
     run_.outputs.push_back(o);
   }
+  void on_raw(const lcm::ReceiveBuffer*, const std::string&, const magvec_lcm::mag_sample* m) {
+    const std::uint64_t rx = now_us();
+    {
+      std::lock_guard<std::mutex> lock(run_.pull_mu);
+      std::uint64_t pull = 0;
+      while (!run_.pulls.empty() && static_cast<std::int64_t>(run_.pulls.front()) <= m->t_us) {
+        pull = run_.pulls.front();
+        run_.pulls.pop_front();
+      }
+      const auto d = static_cast<double>(m->t_us) - static_cast<double>(pull);
+      if (pull != 0 && d < 2'000) {
+        run_.drdy_paths.push_back(d);
+        if (run_.drdy_paths.size() > 31) run_.drdy_paths.pop_front();
+        std::vector<double> v(run_.drdy_paths.begin(), run_.drdy_paths.end());
+        std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
+        run_.drdy_path_us = v[v.size() / 2];
+      }
+    }
+    std::lock_guard<std::mutex> lock(mu_);
+    run_.raws.push_back(RawSample{m->t_us, rx});
+  }
   void on_state(const lcm::ReceiveBuffer*, const std::string&,
                 const magvec_lcm::calibration_state* m) {
+    const std::uint64_t rx = now_us();
     std::lock_guard<std::mutex> lock(mu_);
+    // A solve window opens with the first "solving" state and closes with its SOLVE_RESULT.
+    if (m->state == "solving" && (run_.solves.empty() || run_.solves.back().second != 0))
+      run_.solves.emplace_back(rx, 0);
     run_.states.push_back(*m);
   }
-
-  void on_attitude(const lcm::ReceiveBuffer*, const std::string&, const magvec_lcm::attitude* m) {
+  void on_event(const lcm::ReceiveBuffer*, const std::string&,
+                const magvec_lcm::pipeline_event* m) {
+    const std::uint64_t rx = now_us();
     std::lock_guard<std::mutex> lock(mu_);
-    run_.attitudes.push_back(*m);
+    if (m->kind == magvec_lcm::pipeline_event::SOLVE_RESULT && !run_.solves.empty() &&
+        run_.solves.back().second == 0)
+      run_.solves.back().second = rx;
+  }
+  void on_attitude(const lcm::ReceiveBuffer*, const std::string&, const magvec_lcm::attitude*) {
+    std::lock_guard<std::mutex> lock(mu_);
+    ++run_.attitudes;
   }
   void on_health(const lcm::ReceiveBuffer*, const std::string&, const magvec_lcm::health* m) {
     std::lock_guard<std::mutex> lock(mu_);
@@ -249,7 +308,7 @@ class Subscriber {
     run_.have_health = true;
   }
 
-  Run& run_;
+  VmRun& run_;
   lcm::LCM lcm_;
   std::thread thread_;
   std::atomic<bool> stop_{false};
@@ -261,53 +320,184 @@ bool write_pull(int fd, const char* value) {
   return pwrite(fd, value, static_cast<std::size_t>(n), 0) == n;
 }
 
-void run_once(Run& run) {
+// The rig: plays the scenario through the guest's devices on a schedule of guest monotonic time.
+class Rig {
+ public:
+  Rig(VmRun& run, int feed, int pull, magvec::drivers::SocketCanBus& can,
+      magvec::drivers::SocketCanBus& listener)
+      : run_(run), feed_(feed), pull_(pull), can_(can), listener_(listener) {}
+
+  void play(magvec::drivers::sim::SimRig& rig) {
+    attitude_id_ = rig.config().ins.ids.ekf_quat;
+    t0_ns_ = mono_ns() + 100'000'000ull;
+    while (rig.step()) {
+      const magvec::drivers::sim::SimSample& s = rig.last();
+      // The codes the simulated ADC latched: read back through its SPI frame.
+      std::array<std::uint8_t, magvec::drivers::ads131::kFrameBytes> tx{}, rx{};
+      rig.adc().transfer(tx, rx);
+      std::array<std::int32_t, 4> codes{};
+      for (std::size_t ch = 0; ch < 4; ++ch)
+        codes[ch] = magvec::drivers::ads131::decode_word24(
+            rx.data() + magvec::drivers::ads131::kWordBytes * (1 + ch));
+      magvec::hal::EdgeEvent e;
+      while (rig.adc().wait_edge(e, 0) == magvec::hal::Status::kOk) {
+      }
+      // INS epochs up to t - latency were emitted by step(): each goes on the bus at its own
+      // time (epoch + latency), before this sample's edge.
+      take_ins(rig);
+      send_ins_until(s.t_s);
+      wake_before(s.t_s);
+      if (::write(feed_, codes.data(), sizeof codes) == static_cast<ssize_t>(sizeof codes))
+        ++run_.fed;
+      // The DRDY path (pull -> gpio-sim -> line event stamp) is tens of us longer than the CAN
+      // path while the daemon waits on the line: the edge is written that much earlier, so that
+      // both kinds of stamp fall at the same offset from their due times.
+      const double lead_us = std::max(0.0, run_.drdy_path_us.load() - can_path_us());
+      const auto lead_ns = static_cast<std::uint64_t>(lead_us * 1000);
+      const std::uint64_t due = on_time(s.t_s, lead_ns) + lead_ns;
+      RigSample r;
+      r.t_s = s.t_s;
+      r.m_nT = s.m_nT;
+      r.due_us = due / 1000;
+      r.pull_us = mono_ns() / 1000;
+      {
+        std::lock_guard<std::mutex> lock(run_.pull_mu);
+        run_.pulls.push_back(r.pull_us);
+      }
+      write_pull(pull_, "pull-down");
+      write_pull(pull_, "pull-up");
+      run_.samples.push_back(r);
+      drain_listener(0);
+    }
+    // The epochs that bracket the last samples.
+    const double t_last = run_.samples.empty() ? 0.0 : run_.samples.back().t_s;
+    rig.ins().run_until(t_last + 3.0 / kInsRateHz);
+    take_ins(rig);
+    send_ins_until(std::numeric_limits<double>::infinity());
+    run_.rig_seconds = static_cast<double>(mono_ns() - t0_ns_) * 1e-9;
+    drain_listener(200'000);
+  }
+
+ private:
+  struct Pending {
+    std::uint64_t due_us;  // scenario time of arrival (epoch + latency)
+    magvec::hal::CanFrame frame;
+  };
+
+  void take_ins(magvec::drivers::sim::SimRig& rig) {
+    magvec::hal::CanFrame f;
+    const std::uint64_t epoch_us = rig.config().time.epoch_us;
+    while (rig.ins().receive(f, 0) == magvec::hal::Status::kOk)
+      pending_.push_back(Pending{f.t_us - epoch_us, f});
+  }
+
+  std::uint64_t due_ns(double t_s) const {
+    return t0_ns_ + static_cast<std::uint64_t>(std::llround(t_s * 1e9));
+  }
+
+  void wake_before(double t_s) {
+    const std::uint64_t due = due_ns(t_s);
+    if (due > kSpinNs) sleep_until_ns(due - kSpinNs);
+  }
+
+  // Spins until scenario time t_s less lead_ns; a late arrival restarts the schedule. Returns the
+  // time it aimed at.
+  std::uint64_t on_time(double t_s, std::uint64_t lead_ns = 0) {
+    const std::uint64_t due = due_ns(t_s) - lead_ns;
+    std::uint64_t now = mono_ns();
+    while (now < due)
+      now = mono_ns();
+    if (now > due + kLateNs) {
+      run_.restarts_s.push_back(t_s);
+      t0_ns_ += now - due;
+      return now;
+    }
+    if (now > due + 50'000) ++run_.late_events;
+    return due;
+  }
+
+  void send_ins_until(double t_s) {
+    while (!pending_.empty() && static_cast<double>(pending_.front().due_us) * 1e-6 <= t_s) {
+      const std::uint64_t due_us = pending_.front().due_us;
+      const double t_epoch_s = static_cast<double>(due_us) * 1e-6;
+      wake_before(t_epoch_s);
+      // The epoch's frames, its last one (the attitude, whose receive time stamps the epoch) on
+      // time.
+      std::uint32_t sent = 0;
+      std::uint64_t due = 0, send_us = 0;
+      while (!pending_.empty() && pending_.front().due_us == due_us) {
+        const magvec::hal::CanFrame f = pending_.front().frame;
+        pending_.pop_front();
+        const bool attitude = pending_.empty() || pending_.front().due_us != due_us;
+        if (attitude) due = on_time(t_epoch_s);
+        const std::uint64_t t_send_us = mono_ns() / 1000;
+        if (can_.send(f) == magvec::hal::Status::kOk) ++sent;
+        if (attitude) send_us = t_send_us;
+      }
+      run_.can_frames += sent;
+      ++run_.epochs;
+      const auto n = static_cast<std::size_t>(
+          std::llround((static_cast<double>(due_us) - kInsLatencyUs) * 1e-6 * kInsRateHz));
+      if (run_.epochs_sent.size() <= n) run_.epochs_sent.resize(n + 1);
+      run_.epochs_sent[n] = VmRun::EpochSent{due / 1000, 0, send_us};
+      awaiting_stamp_.push_back(n);
+      drain_listener(0);
+    }
+  }
+
+  // The rig's own listener on vcan0 sees every frame the daemon's socket sees, with the same
+  // kernel stamp (taken when the frame is queued, during the send): the stamp of each epoch's
+  // attitude frame. Read without waiting, so that a deferred delivery (the network softirq runs
+  // after the real-time tasks) never holds up the next event.
+  void drain_listener(std::uint32_t timeout_us) {
+    magvec::hal::CanFrame f;
+    while (run_.can_looped < run_.can_frames &&
+           listener_.receive(f, timeout_us) == magvec::hal::Status::kOk) {
+      ++run_.can_looped;
+      if (f.id == attitude_id_ && !awaiting_stamp_.empty()) {
+        VmRun::EpochSent& e = run_.epochs_sent[awaiting_stamp_.front()];
+        awaiting_stamp_.pop_front();
+        e.stamp_us = f.t_us;
+        can_path_.push_back(static_cast<double>(e.stamp_us) - static_cast<double>(e.send_us));
+        if (can_path_.size() > 31) can_path_.pop_front();
+      }
+    }
+  }
+
+  VmRun& run_;
+  int feed_;
+  int pull_;
+  magvec::drivers::SocketCanBus& can_;
+  magvec::drivers::SocketCanBus& listener_;
+  // Median (last 31 epochs) of the attitude frame's kernel stamp less its send time (us).
+  double can_path_us() {
+    if (can_path_.empty()) return 0;
+    std::vector<double> v(can_path_.begin(), can_path_.end());
+    std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2), v.end());
+    return v[v.size() / 2];
+  }
+
+  std::deque<double> can_path_;
+  std::uint32_t attitude_id_{0};
+  std::deque<Pending> pending_;
+  std::deque<std::size_t> awaiting_stamp_;  // epochs sent whose attitude frame was not read yet
+  std::uint64_t t0_ns_{0};
+};
+
+std::string vspi_param(const char* name) {
+  return env("MAGVEC_TEST_VSPI_PARAMS", "/sys/module/magvec_vspi/parameters") + "/" + name;
+}
+
+void run_once(VmRun& run) {
   namespace sim = magvec::drivers::sim;
   namespace daemon = magvec::host::daemon;
-  namespace hil = magvec::host::hil;
   run.ran = true;
   ::mkdir(kWork, 0755);
-  const sim::ScenarioConfig base = sim::scenario_li2023();
-  const std::string text = config_text(base.h_n_nT.norm());
+  const sim::ScenarioConfig sc = scenario();
+  const std::string text = config_text(sc.h_n_nT.norm());
   const std::string config_path = std::string(kWork) + "/magvecd.toml";
   std::ofstream(config_path) << text;
   const daemon::Config config = daemon::parse_config(text, config_path);
-
-  // Reference with simulated drivers. The li2023 scenario has a new random attitude per sample,
-  // so only the attitude of the conversion's own INS epoch is right and any interpolation between
-  // epochs is a gross error. In the guest, kernel receive times jitter by a sizeable fraction of
-  // a period, so the daemon there takes the attitude held at the DRDY edge (its config sets
-  // fusion_horizon_us = 0; the rig sends each epoch before the edge). The reference keeps the
-  // delayed horizon and gets each epoch without CAN latency, so its stamps are exact and the
-  // attitude is taken at the epoch itself. A smoothly rotating VM scenario, where interpolation
-  // matters, is still to be written.
-  {
-    daemon::Config ref_config = config;
-    ref_config.ins.fusion_horizon_us = daemon::Config{}.ins.fusion_horizon_us;
-    ref_config.ins.latency_comp_us = 0;
-    sim::Simulator s(scenario(ref_config), ref_config.sim.seed);
-    hil::SimFrontEnd front(s, daemon::sim_rig_config(ref_config));
-    CollectSink sink;
-    std::unique_ptr<daemon::Pipeline> p = daemon::Pipeline::create(ref_config, sink);
-    if (front.init() != magvec::hal::Status::kOk) {
-      run.setup_error = "reference: simulated ADC did not initialise";
-      return;
-    }
-    p->start_calibration();
-    struct Handler {
-      daemon::Pipeline& p;
-      double f_ref;
-      void on_attitude(const magvec::hal::AttitudeSample& a) { p.on_attitude(a); }
-      void on_magnetometer(const magvec::hal::MagnetometerSample& m, double) {
-        p.on_magnetometer(m, f_ref);  // the daemon's real mode: the configured reference
-      }
-      void on_read_error(magvec::hal::Status) { p.on_read_error(); }
-    } h{*p, config.calibration.reference_field_nT};
-    while (front.rig().step())
-      front.poll(h);
-    p->flush();  // as magvecd does when it stops: samples inside the fusion horizon
-    run.reference = std::move(sink.out);
-  }
 
   // Devices of the rig.
   const int feed = ::open(env("MAGVEC_TEST_ADC_FEED", "/dev/magvec_adc_feed").c_str(), O_WRONLY);
@@ -317,8 +507,6 @@ void run_once(Run& run) {
   cc.interface = env("MAGVEC_TEST_CAN", "vcan0");
   cc.receive_error_frames = false;
   auto can = magvec::drivers::SocketCanBus::open(cc, &err);
-  // A listener on the same bus: once it has an epoch's frames, every socket has them (vcan
-  // delivers to all sockets in one pass), so the DRDY edge that follows cannot overtake them.
   auto listener = magvec::drivers::SocketCanBus::open(cc, &err);
   if (feed < 0 || pull < 0 || !can || !listener) {
     run.setup_error = "rig devices: feed " + std::to_string(feed) + ", pull " +
@@ -327,13 +515,18 @@ void run_once(Run& run) {
     return;
   }
   write_pull(pull, "pull-up");  // DRDY idles high; a conversion is a falling edge
+  const long long fed0 = read_sysfs_number(vspi_param("fed_conversions"));
+  const long long frames0 = read_sysfs_number(vspi_param("fed_frames"));
+  const long long overruns0 = read_sysfs_number(vspi_param("fed_overruns"));
 
   Subscriber sub(run);
   if (!sub.good()) {
     run.setup_error = "LCM udpm unavailable in the guest (lo multicast route?)";
     return;
   }
-  sub.start();
+  sub.start();  // before the rig turns real-time: the subscriber thread stays SCHED_OTHER
+
+  sched_param sp{};
 
   const std::string err_path = std::string(kWork) + "/magvecd.err";
   const pid_t pid = fork();
@@ -362,58 +555,20 @@ void run_once(Run& run) {
   }
   if (ready) {
     usleep(300'000);
-    sim::Simulator s(scenario(config), config.sim.seed);
+    // The rig above the daemon's SCHED_FIFO priority (config default 20): the devices' events
+    // happen on time whatever the daemon is doing, as with hardware.
+    sp.sched_priority = 30;
+    run.rig_realtime = pthread_setschedparam(pthread_self(), SCHED_FIFO, &sp) == 0;
+    sim::Simulator s(sc, kSeed);
     sim::SimRigConfig rc = daemon::sim_rig_config(config);
-    rc.ins_lead_s = 0.5 / kRateHz;  // the epoch of this sample, never the next one
+    rc.ins.rate_hz = kInsRateHz;
+    rc.ins.can_latency_us = kInsLatencyUs;
+    rc.ins_lead_s = 0;  // each epoch arrives its latency after its time, as on the vehicle
     sim::SimRig rig(s, rc);
-    const auto period_ns = static_cast<std::uint64_t>(1e9 / kRateHz);
-    std::uint64_t t0 = mono_ns();
-    std::uint64_t k = 0;
-    while (rig.step()) {
-      const Eigen::Vector3d h = rig.last().h_n_true_nT;
-      if (k == 0) run.h_true = h;
-      if ((h - run.h_true).norm() > 1e-9) run.h_constant = false;
-      // The codes the simulated ADC latched: read back through its SPI frame.
-      std::array<std::uint8_t, magvec::drivers::ads131::kFrameBytes> tx{}, rx{};
-      rig.adc().transfer(tx, rx);
-      std::array<std::int32_t, 4> codes{};
-      for (std::size_t ch = 0; ch < 4; ++ch)
-        codes[ch] = magvec::drivers::ads131::decode_word24(
-            rx.data() + magvec::drivers::ads131::kWordBytes * (1 + ch));
-      magvec::hal::EdgeEvent e;
-      while (rig.adc().wait_edge(e, 0) == magvec::hal::Status::kOk) {
-      }
-      const std::uint64_t due = t0 + k * period_ns;
-      sleep_until_ns(due);
-      const std::uint64_t now = mono_ns();
-      if (now > due + period_ns / 2) {
-        // The VM stalled: restart the schedule from now instead of sending the missed steps as a
-        // burst (a burst would bunch INS epochs and DRDY edges closer than a period; counted).
-        ++run.late_steps;
-        t0 += now - due;
-      }
-      magvec::hal::CanFrame f;
-      std::uint32_t sent = 0;
-      while (rig.ins().receive(f, 0) == magvec::hal::Status::kOk) {
-        if (can->send(f) == magvec::hal::Status::kOk) ++sent;
-      }
-      run.can_frames += sent;
-      // The INS epoch reaches the daemon's socket before the conversion's DRDY edge (the order
-      // of a real rig: the epoch at t_k arrives 0.5 ms after t_k, the daemon's li2023 scenario
-      // has a new random attitude per sample, so an epoch overtaken by the edge is a gross error).
-      for (std::uint32_t got = 0; got < sent; ++got) {
-        if (listener->receive(f, 200'000) != magvec::hal::Status::kOk) {
-          ++run.can_not_looped;
-          break;
-        }
-      }
-      if (::write(feed, codes.data(), sizeof codes) == static_cast<ssize_t>(sizeof codes))
-        ++run.fed;
-      write_pull(pull, "pull-down");
-      write_pull(pull, "pull-up");
-      ++k;
-    }
-    run.rig_seconds = static_cast<double>(mono_ns() - t0) * 1e-9;
+    Rig player(run, feed, pull, *can, *listener);
+    player.play(rig);
+    sp.sched_priority = 0;
+    pthread_setschedparam(pthread_self(), SCHED_OTHER, &sp);
     sleep(1);
     const std::uint64_t t_term = mono_ns();
     kill(pid, SIGTERM);
@@ -437,10 +592,47 @@ void run_once(Run& run) {
   sub.stop();
   ::close(feed);
   ::close(pull);
+  run.vspi_fed = read_sysfs_number(vspi_param("fed_conversions")) - fed0;
+  run.vspi_frames = read_sysfs_number(vspi_param("fed_frames")) - frames0;
+  run.vspi_overruns = read_sysfs_number(vspi_param("fed_overruns")) - overruns0;
+  run.vspi_max_queued = read_sysfs_number(vspi_param("fed_max_queued"));
   run.daemon_stderr = read_file(err_path);
   struct stat sb {};
   run.cal_file = ::stat((std::string(kWork) + "/state/cal.json").c_str(), &sb) == 0;
 }
+
+// Index of the rig sample whose falling edge produced the DRDY stamp t_us, or -1: the stamp
+// falls after the rig's write of that edge and before the next sample's.
+long match_sample(const std::vector<RigSample>& s, std::int64_t t_us) {
+  const auto it = std::upper_bound(
+      s.begin(), s.end(), t_us,
+      [](std::int64_t t, const RigSample& r) { return t < static_cast<std::int64_t>(r.pull_us); });
+  if (it == s.begin()) return -1;
+  const auto k = static_cast<long>(it - s.begin()) - 1;
+  const double period_us = 1e6 / kRateHz;
+  if (static_cast<double>(t_us - static_cast<std::int64_t>(
+                                     s[static_cast<std::size_t>(k)].pull_us)) > 0.5 * period_us)
+    return -1;
+  return k;
+}
+
+bool in_solve(const VmRun& run, std::uint64_t t_us) {
+  for (const auto& w : run.solves)
+    if (t_us >= w.first && (w.second == 0 || t_us <= w.second)) return true;
+  return false;
+}
+
+struct Stat {
+  double worst{0};
+  double sum{0};
+  std::size_t n{0};
+  void add(double v) {
+    worst = std::max(worst, v);
+    sum += v;
+    ++n;
+  }
+  double mean() const { return n ? sum / static_cast<double>(n) : 0; }
+};
 
 class MagvecdVm : public ::testing::Test {
  protected:
@@ -458,63 +650,172 @@ TEST_F(MagvecdVm, DaemonRunsOnRealDevicesAndStopsCleanly) {
       << g_run.daemon_stderr;
   EXPECT_EQ(g_run.exit_status, 0) << g_run.daemon_stderr;
   EXPECT_LT(g_run.stop_ms, 1000.0) << "SIGTERM -> exit";
-  std::printf("rig: %u samples fed in %.2f s (%u late steps), %llu CAN frames; stop %.0f ms\n",
-              g_run.fed, g_run.rig_seconds, g_run.late_steps,
-              static_cast<unsigned long long>(g_run.can_frames), g_run.stop_ms);
-  EXPECT_EQ(g_run.fed, kSamples);
-  EXPECT_EQ(g_run.can_not_looped, 0u) << "CAN frames not delivered on vcan0 within 200 ms";
-}
-
-TEST_F(MagvecdVm, PublishesOneOutputPerConversionAtTheRate) {
-  const std::vector<OutputSample>& o = g_run.outputs;
-  ASSERT_GE(o.size(), 2u);
-  // Every conversion read (a few may be lost to scheduling under emulation: at most 2 %).
-  EXPECT_GE(static_cast<double>(o.size()), 0.98 * kSamples) << o.size() << " outputs";
-  EXPECT_LE(o.size(), static_cast<std::size_t>(kSamples));
-  const double span_s = static_cast<double>(o.back().t_us - o.front().t_us) * 1e-6;
-  // The rate from the median spacing of the kernel's DRDY timestamps (robust to the rig's
-  // schedule restarts after VM stalls, which the mean over the span would count).
-  std::vector<std::int64_t> dt;
-  for (std::size_t i = 1; i < o.size(); ++i)
-    dt.push_back(o[i].t_us - o[i - 1].t_us);
-  std::nth_element(dt.begin(), dt.begin() + static_cast<std::ptrdiff_t>(dt.size() / 2), dt.end());
-  const double rate = 1e6 / static_cast<double>(dt[dt.size() / 2]);
+  Stat ins;
+  for (const VmRun::EpochSent& e : g_run.epochs_sent)
+    if (e.stamp_us != 0) ins.add(static_cast<double>(e.stamp_us) - static_cast<double>(e.due_us));
   std::printf(
-      "outputs: %zu over %.2f s of sample time (mean %.2f Hz), median spacing: %.2f Hz "
-      "(configured %.1f)\n",
-      o.size(), span_s, static_cast<double>(o.size() - 1) / span_s, rate, kRateHz);
-  EXPECT_NEAR(rate, kRateHz, 0.03 * kRateHz);
-  std::size_t no_att = 0;
-  for (const OutputSample& s : o)
-    no_att += (s.flags & kNoAttitudeFlag) != 0 ? 1 : 0;
+      "rig (SCHED_FIFO %s, DRDY write -> stamp at the end %.0f us): %u samples fed in %.2f s, %u "
+      "INS epochs (%llu CAN frames, kernel "
+      "stamp - due: mean %.0f us, worst %.0f us), %zu schedule restarts, %u writes > 50 us late; "
+      "stop %.0f ms\n",
+      g_run.rig_realtime ? "on" : "refused", g_run.drdy_path_us.load(), g_run.fed,
+      g_run.rig_seconds, g_run.epochs, static_cast<unsigned long long>(g_run.can_frames),
+      ins.mean(), ins.worst, g_run.restarts_s.size(), g_run.late_events, g_run.stop_ms);
   const auto& h = g_run.health;
   std::printf(
-      "attitude messages: %zu; health: mag %lld (crc %lld, not fresh %lld, missing %lld, "
-      "time jumps %lld), att %lld (malformed %lld, invalid %lld, gaps %lld, rejected "
-      "%lld), no attitude %lld\n",
-      g_run.attitudes.size(), static_cast<long long>(h.mag_samples),
-      static_cast<long long>(h.mag_crc_errors), static_cast<long long>(h.mag_not_fresh),
-      static_cast<long long>(h.mag_missing), static_cast<long long>(h.mag_time_jumps),
-      static_cast<long long>(h.att_samples), static_cast<long long>(h.att_malformed),
-      static_cast<long long>(h.att_invalid), static_cast<long long>(h.att_gaps),
-      static_cast<long long>(h.att_rejected), static_cast<long long>(h.no_attitude));
-  for (std::size_t i = 0; i < std::min<std::size_t>(3, g_run.attitudes.size()); ++i)
-    std::printf("attitude %zu: t %lld us, flags %d; output %zu: t %lld us\n", i,
-                static_cast<long long>(g_run.attitudes[i].t_us), g_run.attitudes[i].flags, i,
-                i < o.size() ? static_cast<long long>(o[i].t_us) : -1LL);
-  EXPECT_GE(g_run.attitudes.size(), static_cast<std::size_t>(0.98 * kSamples));
-  std::string dropouts;
-  for (std::size_t i = 0; i < o.size(); ++i)
-    if ((o[i].flags & magvec::core::kOutDropout) != 0) dropouts += " " + std::to_string(i);
-  std::printf("outputs flagged dropout (not fresh):%s\n",
-              dropouts.empty() ? " none" : dropouts.c_str());
-  ASSERT_TRUE(g_run.have_health) << "no MAGVEC_HEALTH message";
-  EXPECT_EQ(h.mag_crc_errors, 0);
+      "health: mag %lld (crc %lld, not fresh %lld, missing %lld, time jumps %lld), att %lld "
+      "(malformed %lld, invalid %lld, gaps %lld, rejected %lld), records %lld, no attitude %lld; "
+      "%zu attitude messages\n",
+      static_cast<long long>(h.mag_samples), static_cast<long long>(h.mag_crc_errors),
+      static_cast<long long>(h.mag_not_fresh), static_cast<long long>(h.mag_missing),
+      static_cast<long long>(h.mag_time_jumps), static_cast<long long>(h.att_samples),
+      static_cast<long long>(h.att_malformed), static_cast<long long>(h.att_invalid),
+      static_cast<long long>(h.att_gaps), static_cast<long long>(h.att_rejected),
+      static_cast<long long>(h.records), static_cast<long long>(h.no_attitude), g_run.attitudes);
+  std::array<std::size_t, 8> flag_count{};
+  for (const OutputSample& o : g_run.outputs)
+    for (std::size_t b = 0; b < flag_count.size(); ++b)
+      flag_count[b] += (o.flags >> b) & 1u;
+  std::printf("output flags (bit: count):");
+  for (std::size_t b = 0; b < flag_count.size(); ++b)
+    std::printf(" %zu: %zu", b, flag_count[b]);
+  std::printf("\n");
+  Stat drdy;  // kernel stamp of each DRDY edge - its due time
+  for (const OutputSample& o : g_run.outputs) {
+    const long k = match_sample(g_run.samples, o.t_us);
+    if (k >= 0)
+      drdy.add(static_cast<double>(o.t_us) -
+               static_cast<double>(g_run.samples[static_cast<std::size_t>(k)].due_us));
+  }
+  std::printf("DRDY kernel stamp - due: mean %.0f us, worst %.0f us\n", drdy.mean(), drdy.worst);
+  {
+    std::vector<double> spin, path;
+    for (const OutputSample& o : g_run.outputs) {
+      const long k = match_sample(g_run.samples, o.t_us);
+      if (k < 0) continue;
+      const RigSample& rs = g_run.samples[static_cast<std::size_t>(k)];
+      spin.push_back(static_cast<double>(rs.pull_us) - static_cast<double>(rs.due_us));
+      path.push_back(static_cast<double>(o.t_us) - static_cast<double>(rs.pull_us));
+    }
+    std::sort(spin.begin(), spin.end());
+    std::sort(path.begin(), path.end());
+    if (!spin.empty())
+      std::printf(
+          "DRDY edges (us, p10/p50/p90): write - due %.0f/%.0f/%.0f (written early by the "
+          "path lead), kernel stamp - write %.0f/%.0f/%.0f\n",
+          spin[spin.size() / 10], spin[spin.size() / 2], spin[spin.size() * 9 / 10],
+          path[path.size() / 10], path[path.size() / 2], path[path.size() * 9 / 10]);
+  }
+  EXPECT_EQ(g_run.fed, kSamples);
+  EXPECT_EQ(h.att_samples, static_cast<std::int64_t>(g_run.epochs));
   EXPECT_EQ(h.att_malformed, 0);
   EXPECT_EQ(h.att_rejected, 0);
-  // Not fresh: a data frame read with the feed's FIFO empty (a read without its DRDY edge).
-  EXPECT_EQ(h.mag_not_fresh, 0);
-  EXPECT_LE(no_att, o.size() / 50) << "outputs without attitude";
+  // An INS gap only where the rig restarted its schedule after a stall.
+  EXPECT_LE(h.att_gaps, static_cast<std::int64_t>(g_run.restarts_s.size()));
+  EXPECT_EQ(g_run.can_looped, g_run.can_frames) << "CAN frames not delivered on vcan0";
+}
+
+// Every conversion the emulated ADC produced has exactly one output, none was read after the next
+// one was queued (a real ADC's single result latch would have lost it), also while the calibration
+// solve ran on the daemon's worker thread.
+TEST_F(MagvecdVm, NoConversionLostWhileTheSolveRuns) {
+  const VmRun& r = g_run;
+  const std::vector<OutputSample>& o = r.outputs;
+  std::printf(
+      "emulated ADC: %lld conversions queued, %lld read as new data, %lld read late "
+      "(overrun of a single latch), at most %lld queued\n",
+      r.vspi_fed, r.vspi_frames, r.vspi_overruns, r.vspi_max_queued);
+  EXPECT_EQ(r.vspi_fed, static_cast<long long>(kSamples));
+  EXPECT_EQ(r.vspi_frames, r.vspi_fed) << "conversions the daemon read as new data";
+  EXPECT_EQ(r.vspi_overruns, 0) << "conversions read after the next one was queued";
+  ASSERT_TRUE(r.have_health) << "no MAGVEC_HEALTH message";
+  const auto& h = r.health;
+  EXPECT_EQ(h.mag_samples, static_cast<std::int64_t>(kSamples));
+  EXPECT_EQ(h.records, static_cast<std::int64_t>(kSamples));
+  EXPECT_EQ(h.mag_crc_errors, 0);
+  EXPECT_EQ(h.mag_not_fresh, 0) << "a read without new data: an edge without its conversion";
+  EXPECT_EQ(h.mag_read_errors, 0);
+  EXPECT_EQ(o.size(), static_cast<std::size_t>(kSamples)) << "outputs published";
+  EXPECT_EQ(r.raws.size(), static_cast<std::size_t>(kSamples)) << "raw samples published";
+
+  // Output k is conversion k: its DRDY stamp follows the rig's edge k and its raw reading is
+  // the one conversion k carried (to the ADC's resolution).
+  std::vector<int> outputs_of(r.samples.size(), 0);
+  std::size_t unmatched = 0, wrong_raw = 0;
+  for (const OutputSample& s : o) {
+    const long k = match_sample(r.samples, s.t_us);
+    if (k < 0) {
+      ++unmatched;
+      continue;
+    }
+    const RigSample& rs = r.samples[static_cast<std::size_t>(k)];
+    ++outputs_of[static_cast<std::size_t>(k)];
+    for (std::size_t i = 0; i < 3; ++i)
+      if (std::abs(s.raw[i] - rs.m_nT[static_cast<int>(i)]) > 0.1) {
+        ++wrong_raw;
+        break;
+      }
+  }
+  std::size_t missing = 0, duplicated = 0;
+  for (int c : outputs_of) {
+    missing += c == 0 ? 1 : 0;
+    duplicated += c > 1 ? 1 : 0;
+  }
+  EXPECT_EQ(unmatched, 0u) << "outputs whose stamp follows no rig edge";
+  EXPECT_EQ(missing, 0u) << "conversions without an output";
+  EXPECT_EQ(duplicated, 0u) << "conversions with more than one output";
+  EXPECT_EQ(wrong_raw, 0u) << "outputs whose raw reading is not their conversion's";
+  // The cadence counter sees the rig's schedule restarts as gaps, nothing else.
+  std::int64_t gaps = 0;
+  const auto p = static_cast<std::int64_t>(std::llround(1e6 / kRateHz));
+  for (std::size_t i = 1; i < o.size(); ++i) {
+    const std::int64_t dt = o[i].t_us - o[i - 1].t_us;
+    if (2 * dt > 3 * p && dt <= 10 * p) gaps += (dt + p / 2) / p - 1;
+  }
+  EXPECT_EQ(h.mag_missing, gaps) << "cadence gaps (rig restarts: " << r.restarts_s.size() << ")";
+
+  // The solve windows (guest time from the "solving" state to the SOLVE_RESULT event) and the
+  // per-sample latencies: DRDY edge -> raw sample published (the read), and -> calibrated output
+  // (includes the fusion horizon's wait for the INS epoch after the sample).
+  ASSERT_FALSE(r.solves.empty()) << "no solve seen";
+  std::size_t in_window = 0, in_window_out = 0;
+  for (std::size_t k = 0; k < r.samples.size(); ++k)
+    if (in_solve(r, r.samples[k].pull_us)) {
+      ++in_window;
+      in_window_out += outputs_of[k] == 1 ? 1u : 0u;
+    }
+  Stat read_in, read_out, out_in, out_out;
+  for (const RawSample& s : r.raws) {
+    const double d = static_cast<double>(s.rx_us) - static_cast<double>(s.t_us);
+    (in_solve(r, static_cast<std::uint64_t>(s.t_us)) ? read_in : read_out).add(d);
+  }
+  // The last conversion has no next one: the spike screen (core::SamplePipeline) holds it until
+  // the stop's flush, so it is left out of the latencies.
+  for (std::size_t i = 0; i + 1 < o.size(); ++i) {
+    const OutputSample& s = o[i];
+    const double d = static_cast<double>(s.rx_us) - static_cast<double>(s.t_us);
+    (in_solve(r, static_cast<std::uint64_t>(s.t_us)) ? out_in : out_out).add(d);
+  }
+  for (const auto& w : r.solves)
+    std::printf("solve window (guest, as seen by the subscriber): %.1f ms\n",
+                w.second ? 1e-3 * static_cast<double>(w.second - w.first) : -1.0);
+  std::printf("during the solves: %zu conversions, %zu with exactly one output\n", in_window,
+              in_window_out);
+  std::printf(
+      "DRDY -> raw sample received: during solves worst %.1f ms (n %zu), outside worst "
+      "%.1f ms mean %.1f ms (n %zu)\n",
+      1e-3 * read_in.worst, read_in.n, 1e-3 * read_out.worst, 1e-3 * read_out.mean(), read_out.n);
+  std::printf(
+      "DRDY -> output received (the sample waits for its INS epochs and the next conversion): "
+      "during solves worst %.1f ms (n %zu), outside worst %.1f ms mean %.1f ms (n %zu, the last "
+      "one, flushed at the stop, left out)\n",
+      1e-3 * out_in.worst, out_in.n, 1e-3 * out_out.worst, 1e-3 * out_out.mean(), out_out.n);
+  const std::string& log = r.daemon_stderr;
+  for (std::size_t at = log.find("solve on the worker"); at != std::string::npos;
+       at = log.find("solve on the worker", at + 1))
+    std::printf("daemon: %s\n", log.substr(at, log.find('\n', at) - at).c_str());
+  EXPECT_NE(log.find("solve on the worker"), std::string::npos) << log;
+  EXPECT_EQ(in_window_out, in_window);
 }
 
 TEST_F(MagvecdVm, CalibratesAppliesAndPersists) {
@@ -530,28 +831,96 @@ TEST_F(MagvecdVm, CalibratesAppliesAndPersists) {
   std::size_t calibrated = 0;
   for (const OutputSample& o : g_run.outputs)
     calibrated += o.cal_id >= 1 ? 1 : 0;
-  EXPECT_GE(calibrated, kSamples / 4) << "outputs with the calibration applied";
+  EXPECT_GE(calibrated, kSamples / 3) << "outputs with the calibration applied";
 }
 
-TEST_F(MagvecdVm, OutputMatchesTheSimulatedDriversWithinTheNoise) {
-  ASSERT_TRUE(g_run.h_constant) << "the comparison assumes a constant field (li2023)";
-  const ErrorStats d = error_stats(g_run.outputs, g_run.h_true);
-  const ErrorStats r = error_stats(g_run.reference, g_run.h_true);
-  std::printf("daemon (guest, real drivers): %s\n", describe(d).c_str());
-  std::printf("reference (simulated drivers): %s\n", describe(r).c_str());
-  ASSERT_GE(d.n, 100u);
-  ASSERT_GE(r.n, 100u);
-  // E/N/U errors are dominated by the INS attitude noise (0.015 deg of 53.7 uT: ~14 nT per
-  // axis); each RMS estimate from n samples has a relative spread ~1/sqrt(2n) (< 5 %): the two
-  // runs must agree within 15 %, and their means within 4 standard errors.
-  for (std::size_t i = 0; i < 3; ++i) {
-    EXPECT_NEAR(d.rms[i], r.rms[i], 0.15 * r.rms[i]) << "axis " << i;
-    const double se = std::sqrt(d.rms[i] * d.rms[i] / static_cast<double>(d.n) +
-                                r.rms[i] * r.rms[i] / static_cast<double>(r.n));
-    EXPECT_NEAR(d.mean[i], r.mean[i], 4.0 * se + 1.0) << "axis " << i;
+// The rig's own timing error for a conversion (us): the scenario time at which the daemon's
+// interpolation between the kernel stamps of the bracketing INS epochs (less the compensated
+// latency) places the DRDY stamp, minus the conversion's true time. The VM's scheduling, not the
+// daemon; NaN when an epoch was not seen.
+double rig_time_error_us(const VmRun& r, const RigSample& s, std::int64_t drdy_us) {
+  const auto e = static_cast<std::size_t>(std::floor(s.t_s * kInsRateHz + 1e-9));
+  if (e + 1 >= r.epochs_sent.size()) return std::numeric_limits<double>::quiet_NaN();
+  const VmRun::EpochSent& a = r.epochs_sent[e];
+  const VmRun::EpochSent& b = r.epochs_sent[e + 1];
+  if (a.stamp_us == 0 || b.stamp_us == 0 || b.stamp_us <= a.stamp_us)
+    return std::numeric_limits<double>::quiet_NaN();
+  // The daemon's attitude time of an epoch: its stamp less the compensated latency.
+  const double a_us = static_cast<double>(a.stamp_us) - kInsLatencyUs;
+  const double w =
+      (static_cast<double>(drdy_us) - a_us) / static_cast<double>(b.stamp_us - a.stamp_us);
+  return ((static_cast<double>(e) + w) / kInsRateHz - s.t_s) * 1e6;
+}
+
+// The calibrated outputs against the simulator's TRUE attitude and field at each conversion's
+// scenario time: E/N/U within 1.3x the floor from the true attitude and the configured noise (INS
+// angle noise through the interpolation between epochs, magnetometer noise: enu_floor.hpp), the
+// bound of the HIL test of an in-loop calibration; |h| within the magnetometer noise (0.3 nT) of
+// what the true model makes of the same readings (the li fit from ~100 motion-decimated samples
+// adds its parameter error). Scored: the conversions the rig delivered on time (its DRDY stamp
+// within kRigTimeErrorUs of the true time relative to the INS epochs' stamps); the others (VM
+// stalls, schedule restarts) are counted and scored separately, printed only.
+TEST_F(MagvecdVm, InterpolatedOutputsWithinTheTrueFloor) {
+  constexpr double kRigTimeErrorUs = 100.0;  // 0.006 deg at 60 deg/s
+  const VmRun& r = g_run;
+  const magvec::drivers::sim::ScenarioConfig sc = scenario();
+  const magvec::drivers::sim::Simulator truth(sc, kSeed);
+  const magvec::core::Compensator<double> true_model(sc.truth);
+  magvec::test::EnuFloorAccumulator enu, enu_all;
+  double f_err = 0, f_floor = 0;
+  std::size_t n_f = 0, flagged = 0, off_time = 0;
+  double time_err_sq = 0;
+  for (const OutputSample& o : r.outputs) {
+    const long k = match_sample(r.samples, o.t_us);
+    if (k < 0 || o.cal_id < 1) continue;
+    const RigSample& rs = r.samples[static_cast<std::size_t>(k)];
+    if ((o.flags & (magvec::core::kOutDropout | magvec::core::kOutDeviceError |
+                    magvec::core::kOutNoAttitude | magvec::core::kOutAttExtrapolated)) != 0) {
+      ++flagged;
+      continue;
+    }
+    const magvec::core::Vec3<double> h_true = truth.true_field_at(rs.t_s);
+    const magvec::core::Vec3<double> enu_out(o.enu[0], o.enu[1], o.enu[2]);
+    const magvec::core::Mat3<double> r_true = truth.true_attitude_at(rs.t_s);
+    const double f = magvec::test::epoch_fraction(rs.t_s + sc.ins_latency_s, kInsRateHz);
+    enu_all.add(enu_out, r_true, h_true, sc.truth, sc.mag_noise_nT, sc.ins_noise_deg, f);
+    const double dt_us = rig_time_error_us(r, rs, o.t_us);
+    if (!(std::abs(dt_us) <= kRigTimeErrorUs)) {
+      ++off_time;
+      continue;
+    }
+    time_err_sq += dt_us * dt_us;
+    enu.add(enu_out, r_true, h_true, sc.truth, sc.mag_noise_nT, sc.ins_noise_deg, f);
+    magvec::core::Compensated<double> c;
+    const magvec::core::Vec3<double> raw(o.raw[0], o.raw[1], o.raw[2]);
+    if (true_model.compensate(raw, &c)) {
+      f_err += (o.f - h_true.norm()) * (o.f - h_true.norm());
+      f_floor += (c.intensity - h_true.norm()) * (c.intensity - h_true.norm());
+      ++n_f;
+    }
   }
-  // |h| is free of attitude noise: within the magnetometer noise floor of the reference.
-  EXPECT_LE(d.f_rms, r.f_rms + 0.3) << "intensity RMS (noise 0.3 nT)";
+  std::printf(
+      "scored %llu calibrated outputs (rig time error RMS %.0f us); left out: %zu delivered off "
+      "time by the rig (> %.0f us), %zu flagged\n",
+      static_cast<unsigned long long>(enu.n),
+      enu.n ? std::sqrt(time_err_sq / static_cast<double>(enu.n)) : 0.0, off_time, kRigTimeErrorUs,
+      flagged);
+  ASSERT_GE(enu.n, kSamples / 4) << "too few conversions delivered on time to judge the daemon";
+  EXPECT_EQ(flagged, 0u) << "calibrated outputs without an interpolated attitude";
+  const char* names[3] = {"E", "N", "U"};
+  for (int k = 0; k < 3; ++k) {
+    std::printf("%s: RMS error %.2f nT, floor %.2f nT, ratio %.3f (all %llu: %.3f)\n", names[k],
+                enu.error(k), enu.floor(k), enu.error(k) / enu.floor(k),
+                static_cast<unsigned long long>(enu_all.n), enu_all.error(k) / enu_all.floor(k));
+    EXPECT_GT(enu.floor(k), 3.0) << names[k] << ": the INS noise is there";
+    EXPECT_LE(enu.error(k), 1.3 * enu.floor(k)) << names[k];
+  }
+  ASSERT_GT(n_f, 0u);
+  const double f_rms = std::sqrt(f_err / static_cast<double>(n_f));
+  const double f_floor_rms = std::sqrt(f_floor / static_cast<double>(n_f));
+  std::printf("|h|: RMS error %.3f nT, floor %.3f nT, ratio %.3f\n", f_rms, f_floor_rms,
+              f_rms / f_floor_rms);
+  EXPECT_LE(f_rms, f_floor_rms + sc.mag_noise_nT);
 }
 
 }  // namespace

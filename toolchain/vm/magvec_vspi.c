@@ -22,6 +22,8 @@
  * A FIFO (not the real ADC's single result latch) keeps conversion k paired with the k-th data
  * frame when the reader runs late under emulation, so the test judges the daemon, not the VM's
  * scheduling. A full FIFO refuses the write (-ENOSPC). Closing the feed returns to the pattern.
+ * What the FIFO hides is counted: fed_overruns (data frames read while a newer conversion was
+ * already queued: conversions the real device's single latch would have lost), fed_max_queued.
  * Fault injection: with crc_error_every = N > 0, every Nth data frame has one data byte flipped
  * after its CRC was computed (writable at run time in /sys/module/magvec_vspi/parameters/).
  */
@@ -55,6 +57,14 @@ MODULE_PARM_DESC(fed_conversions, "conversions written to /dev/magvec_adc_feed")
 static unsigned int fed_frames;
 module_param(fed_frames, uint, 0444);
 MODULE_PARM_DESC(fed_frames, "data frames that carried a fed conversion as new data");
+/* A real ADS131M04 holds one conversion: a data frame read after the next conversion was already
+ * queued behind it is a conversion that device would have overwritten (lost). */
+static unsigned int fed_overruns;
+module_param(fed_overruns, uint, 0444);
+MODULE_PARM_DESC(fed_overruns, "data frames read while a newer fed conversion was already queued");
+static unsigned int fed_max_queued;
+module_param(fed_max_queued, uint, 0444);
+MODULE_PARM_DESC(fed_max_queued, "most fed conversions queued at once");
 static unsigned int gain1;
 module_param(gain1, uint, 0444);
 MODULE_PARM_DESC(gain1, "GAIN1 register as last written by WREG");
@@ -120,6 +130,7 @@ static void build_frame(u8* out) {
     if (feed_count > 0) {
       memcpy(codes, feed_fifo[feed_head], sizeof(codes));
       if (data) {
+        if (feed_count > 1) ++fed_overruns;
         memcpy(feed_last, codes, sizeof(codes));
         feed_head = (feed_head + 1) % FEED_DEPTH;
         --feed_count;
@@ -214,6 +225,7 @@ static ssize_t feed_write_fn(struct file* file, const char __user* buf, size_t l
     memcpy(feed_fifo[(feed_head + feed_count) % FEED_DEPTH], codes, sizeof(codes));
     ++feed_count;
     ++fed_conversions;
+    if (feed_count > fed_max_queued) fed_max_queued = feed_count;
     spin_unlock_irqrestore(&feed_lock, flags);
     done += sizeof(codes);
   }

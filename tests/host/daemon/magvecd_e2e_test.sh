@@ -140,8 +140,9 @@ cat "$W/file_sub.out"
 check "file:// replay into a subscriber gives the same outputs" cmp -s <(data_rows "$W/file_sub.csv") <(data_rows "$W/replay1.csv")
 
 # ------------------------------------------------------------------ 2b. batched raw samples
-# lcm.raw_batch = 10 at 1 kHz (INS 100 Hz): the raw samples travel as mag_sample_batch on their
-# own channel, the outputs stay one per sample, and the replay is bit-identical.
+# lcm.raw_batch = 10 at 1 kHz (INS 100 Hz), the simulated devices read every 10 ms
+# (sim.wake_period_us): the raw samples travel as mag_sample_batch on their own channel, the
+# outputs stay one per sample, and the replay is bit-identical.
 cat > "$W/batch.toml" <<EOF
 [daemon]
 realtime = true
@@ -152,6 +153,8 @@ raw_batch = 10
 rate_hz = 1000.0
 [devices.ins]
 rate_hz = 100.0
+[sim]
+wake_period_us = 10000
 EOF
 start_logger "$W/batch.lcm"
 "$MAGVECD" --config "$W/batch.toml" --sim --state-dir "$W/state_batch" 2>"$W/batch.err" &

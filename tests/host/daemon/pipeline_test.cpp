@@ -147,6 +147,7 @@ TEST(DaemonConfig, EmbeddedDefaultAndExampleFileParseAlike) {
   EXPECT_TRUE(std::isnan(d.calibration.reference_field_nT));
   EXPECT_TRUE(std::isnan(e.calibration.reference_field_nT));
   EXPECT_EQ(d.sim.samples_per_attitude, e.sim.samples_per_attitude);
+  EXPECT_EQ(d.sim.wake_period_us, e.sim.wake_period_us);
   EXPECT_EQ(d.daemon.state_dir, e.daemon.state_dir);
 }
 
@@ -212,6 +213,7 @@ TEST(DaemonConfig, EmptyFileEqualsTheEmbeddedDefault) {
   EXPECT_EQ(d.sim.scenario, e.sim.scenario);
   EXPECT_EQ(d.sim.seed, e.sim.seed);
   EXPECT_EQ(d.sim.samples_per_attitude, e.sim.samples_per_attitude);
+  EXPECT_EQ(d.sim.wake_period_us, e.sim.wake_period_us);
 }
 
 TEST(DaemonConfig, ErrorsNameTheKey) {

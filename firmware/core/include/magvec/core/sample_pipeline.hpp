@@ -224,30 +224,35 @@ class SamplePipeline {
   }
 
   static bool screenable(const MagSample<Scalar>& s) noexcept {
-    return !s.device_error && s.m_nT.allFinite();
+    return !s.device_error && std::isfinite(s.m_nT(0)) && std::isfinite(s.m_nT(1)) &&
+           std::isfinite(s.m_nT(2));
   }
 
-  // E-Spike: judges s against the last sample that passed and the next one in the queue.
+  // E-Spike: judges s against the last sample that passed and the next one in the queue. Plain
+  // scalar arithmetic: it runs on every sample of the M4F image (no expression temporaries).
   bool is_spike(const MagSample<Scalar>& s) noexcept {
-    if (!(config_.spike_factor > 0) || !screenable(s)) return false;
-    const bool judged = have_prev_ && count_ >= 2 && [&] {
-      const MagSample<Scalar>& n = queue_[(head_ + 1) % QueueCapacity];
-      if (!screenable(n) || !(prev_t_us_ < s.t_us && s.t_us < n.t_us)) return false;
-      // Neighbours more than 10 periods apart are a gap: no judgement across it. Whole
-      // microseconds in 32 bits: no soft-float 64-bit conversion on the M4F.
-      const std::uint64_t span = n.t_us - prev_t_us_;
-      if (span > 10 * std::uint64_t{config_.mag_period_us > 0 ? config_.mag_period_us : 1})
-        return false;
-      const Scalar w = static_cast<Scalar>(static_cast<std::uint32_t>(s.t_us - prev_t_us_)) /
-                       static_cast<Scalar>(static_cast<std::uint32_t>(span));
-      const Vec3<Scalar> step = n.m_nT - prev_m_nT_;
-      spike_r2_ = (s.m_nT - prev_m_nT_ - w * step).squaredNorm();
-      spike_c2_ = step.squaredNorm();
-      return true;
-    }();
-    if (!judged) return false;
+    if (!(config_.spike_factor > 0) || !have_prev_ || count_ < 2 || !screenable(s)) return false;
+    const MagSample<Scalar>& n = queue_[(head_ + 1) % QueueCapacity];
+    if (!screenable(n) || !(prev_t_us_ < s.t_us && s.t_us < n.t_us)) return false;
+    // Neighbours more than 10 periods apart are a gap: no judgement across it. The time
+    // differences fit 32 bits then: no soft-float 64-bit conversion on the M4F.
+    const std::uint64_t span = n.t_us - prev_t_us_;
+    if (span > 10 * std::uint64_t{config_.mag_period_us > 0 ? config_.mag_period_us : 1})
+      return false;
+    // Uniform spacing (the usual case) needs no division.
+    const auto before = static_cast<std::uint32_t>(s.t_us - prev_t_us_);
+    const auto whole = static_cast<std::uint32_t>(span);
+    const Scalar w = 2 * before == whole ? Scalar(0.5)
+                                         : static_cast<Scalar>(before) / static_cast<Scalar>(whole);
+    Scalar r2 = 0;
+    Scalar c2 = 0;
+    for (int i = 0; i < 3; ++i) {
+      const Scalar step = n.m_nT(i) - prev_m_nT_(i);
+      const Scalar d = s.m_nT(i) - prev_m_nT_(i) - w * step;
+      r2 += d * d;
+      c2 += step * step;
+    }
     ++counters_.spike_screened;
-    const Scalar r2 = spike_r2_;
     if (spike_warm_ < kSpikeWarmup) {
       // The first samples give the start through their median (a spike among them must not
       // inflate it): the median of r^2/E[r^2] (chi-square, 3 degrees of freedom, over 3) is 0.79.
@@ -261,10 +266,11 @@ class SamplePipeline {
     }
     const Scalar k2 = config_.spike_factor * config_.spike_factor;
     const Scalar floor2 = config_.spike_min_nT * config_.spike_min_nT;
-    if (r2 > k2 * spike_ms_ && r2 > spike_c2_ && r2 > floor2) return true;
+    if (r2 > k2 * spike_ms_ && r2 > c2 && r2 > floor2) return true;
     // Running mean square of r, each value clipped at 9x the mean (a step's large r barely
     // moves it; a lasting rise of the noise is followed within a few hundred samples).
-    spike_ms_ += (std::fmin(r2, Scalar(9) * spike_ms_) - spike_ms_) / Scalar(64);
+    const Scalar cap = Scalar(9) * spike_ms_;
+    spike_ms_ += ((r2 < cap ? r2 : cap) - spike_ms_) * Scalar(1.0 / 64);  // r2 is finite here
     return false;
   }
 
@@ -274,7 +280,7 @@ class SamplePipeline {
     s.spike = is_spike(s);
     if (s.spike) {
       ++counters_.spikes;
-    } else if (screenable(s)) {
+    } else if (config_.spike_factor > 0 && screenable(s)) {
       prev_m_nT_ = s.m_nT;
       prev_t_us_ = s.t_us;
       have_prev_ = true;
@@ -316,8 +322,6 @@ class SamplePipeline {
   std::uint32_t spike_warm_{0};
   Scalar spike_ms_{0};  // running mean square of r
   Scalar spike_warmup_r2_[kSpikeWarmup]{};
-  Scalar spike_r2_{0};
-  Scalar spike_c2_{0};
 };
 
 }  // namespace magvec::core

@@ -18,17 +18,9 @@
 namespace magvec {
 namespace {
 
-// A calibrator that never calibrates: the loop outputs with the active (identity) model.
+// The loop outputs with the active (identity) model.
 template <typename Scalar>
-struct IdleCalibrator {
-  void begin() noexcept {}
-  core::CalibratorAdd add(const core::Vec3<Scalar>&, Scalar, const core::Mat3<Scalar>*) noexcept {
-    return core::CalibratorAdd::kRejected;
-  }
-  Scalar progress() const noexcept { return 0; }
-  bool ready() const noexcept { return false; }
-  core::CalibratorSolve solve(core::SensorModel<Scalar>*) noexcept { return {false, 1}; }
-};
+using IdleCalibrator = pipeline::NullCalibrator<Scalar>;
 
 constexpr std::uint32_t kLatencyUs = 15'000;
 const core::Vec3<double> kField(-4053.0, 25022.0, -47374.0);

@@ -56,6 +56,20 @@ hal::OutputRecord to_hal_record(const core::OutputRecord<Scalar>& r) noexcept {
   return o;
 }
 
+// A calibrator that never calibrates (the calibrator mode "none"): the loop outputs with the
+// active calibration (identity, or one installed with set_active) and flags kOutUncalibrated
+// while cal_id is 0. For running the pipeline before, or without, an estimator.
+template <typename Scalar>
+struct NullCalibrator {
+  void begin() noexcept {}
+  core::CalibratorAdd add(const core::Vec3<Scalar>&, Scalar, const core::Mat3<Scalar>*) noexcept {
+    return core::CalibratorAdd::kRejected;
+  }
+  Scalar progress() const noexcept { return 0; }
+  bool ready() const noexcept { return false; }
+  core::CalibratorSolve solve(core::SensorModel<Scalar>*) noexcept { return {false, 1}; }
+};
+
 // Expected sample period in whole microseconds from a rate (the pipeline's missing/gap counters).
 constexpr std::uint32_t period_us_from_hz(double rate_hz) noexcept {
   return rate_hz > 0 ? static_cast<std::uint32_t>(1e6 / rate_hz + 0.5) : 0;

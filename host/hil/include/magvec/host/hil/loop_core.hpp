@@ -112,18 +112,7 @@ class LoopCore {
   hal::RecordSink& sink_;
 };
 
-// A calibrator that never calibrates (the `--calibrator none` choice): the loop outputs with the
-// active calibration (identity, or one installed with set_active) and flags kOutUncalibrated
-// while cal_id is 0. It exists so the harness runs before an estimator is plugged in; it is not
-// started (HilConfig::start_calibration = false).
-struct NullCalibrator {
-  void begin() noexcept {}
-  core::CalibratorAdd add(const core::Vec3<double>&, double, const core::Mat3<double>*) noexcept {
-    return core::CalibratorAdd::kRejected;
-  }
-  double progress() const noexcept { return 0; }
-  bool ready() const noexcept { return false; }
-  core::CalibratorSolve solve(core::SensorModel<double>*) noexcept { return {false, 1}; }
-};
+// The `--calibrator none` choice; it is not started (HilConfig::start_calibration = false).
+using NullCalibrator = pipeline::NullCalibrator<double>;
 
 }  // namespace magvec::host::hil

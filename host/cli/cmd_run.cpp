@@ -134,9 +134,9 @@ void run_session(const RunOptions& o, drivers::sim::Simulator& sim,
             << ", not fresh (dropouts) " << c.mag_not_fresh << ", missing " << c.mag_missing
             << ", time jumps " << c.mag_time_jumps << "\n";
   std::cout << "  attitude: samples " << ac.samples << ", malformed frames " << ac.malformed
-            << ", missing time " << ac.missing_time << ", invalid " << c.att_invalid << ", gaps "
-            << c.att_gaps << ", time jumps " << c.att_time_jumps << ", buffer rejected "
-            << c.att_rejected << "\n";
+            << ", missing time " << ac.missing_time << ", duplicates " << ac.duplicates
+            << ", invalid " << c.att_invalid << ", gaps " << c.att_gaps << ", time jumps "
+            << c.att_time_jumps << ", buffer rejected " << c.att_rejected << "\n";
   std::cout << "  loop: samples " << h.samples << ", dropouts " << h.dropouts << ", device errors "
             << h.device_errors << ", no attitude " << h.no_attitude << ", calibrations applied "
             << h.calibrations_applied << ", failed " << h.calibrations_failed << ", final cal_id "

@@ -67,6 +67,8 @@ void apply_faults(const std::string& spec, drivers::sim::ScenarioConfig* sc,
       rc->serial.faults.bad_checksum_probability = probability(option, key, val);
     } else if (key == "ins-corrupt") {
       rc->ins.faults.corrupt_probability = probability(option, key, val);
+    } else if (key == "ins-duplicate") {
+      rc->ins.faults.duplicate_probability = probability(option, key, val);
     } else if (key == "ins-gap") {
       std::tie(rc->ins.faults.gap_start_s, rc->ins.faults.gap_length_s) = pair_of(option, key, val);
     } else if (key == "ins-invalid") {

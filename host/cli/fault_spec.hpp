@@ -12,7 +12,8 @@ namespace magvec::host::cli {
 // Help text of the option (every key).
 inline constexpr const char* kFaultsHelp =
     "Comma-separated faults: crc=P, saturation=P, dropout=P, spike=P (SPI/any), garbage=P, "
-    "bad-checksum=P (serial), ins-corrupt=P, ins-gap=START:LEN, ins-invalid=START:LEN, "
+    "bad-checksum=P (serial), ins-corrupt=P, ins-duplicate=P, ins-gap=START:LEN, "
+    "ins-invalid=START:LEN, "
     "ins-latency-us=N, clock-jump=AT:JUMP_S";
 
 // Applies `spec` on top of the configurations; a bad item throws CLI::ValidationError naming

@@ -1,10 +1,12 @@
 // SBG INS CAN frames through the attitude decoder. Input: 1 configuration byte (quaternion or
 // Euler source), then frames of [id selector, dlc | extended bit, dlc data bytes].
 // Invariants: every frame lands in exactly one counter/result (samples, malformed, missing_time,
-// ignored, or consumed); a sample is stamped with the receive time of its attitude frame and the
-// INS time of the last EKF_INFO, its quaternion is unit and finite, its accuracies finite and
-// non-negative, its solution mode the low bits of the last SOLUTION_STATUS; a sample needs a fresh
-// EKF_INFO (at most one sample per EKF_INFO).
+// ignored, duplicates, or consumed); a frame identical to the previous configured frame is a
+// duplicate, and so is an attitude frame whose fresh EKF_INFO time is the last sample's; a sample
+// is stamped with the receive time of its attitude frame and the INS time of the last EKF_INFO, its
+// quaternion is unit and finite, its accuracies finite and non-negative, its solution mode the low
+// bits of the last SOLUTION_STATUS; a sample needs a fresh EKF_INFO (at most one sample per
+// EKF_INFO).
 #include <cmath>
 
 #include "fuzz_check.hpp"
@@ -23,9 +25,12 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
                                  ids.ekf_quat,  ids.ekf_euler, ids.ekf_orientation_acc};
   sbg::CanDecoder dec(cfg);
 
-  std::uint64_t frames = 0, samples = 0, malformed = 0, missing = 0, ignored = 0;
+  std::uint64_t frames = 0, samples = 0, malformed = 0, missing = 0, ignored = 0, duplicates = 0;
   bool info_since_sample = false;
   std::uint32_t last_info_time = 0;
+  bool have_prev = false, have_sample = false;
+  std::uint64_t last_sample_ins = 0;
+  hal::CanFrame prev;
   while (in.size() > 0) {
     hal::CanFrame f;
     const std::uint8_t sel = in.u8();
@@ -36,10 +41,32 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
     for (std::size_t i = 0; i < f.dlc; ++i)
       f.data[i] = in.u8();  // bytes beyond dlc stay zero (the hal::CanFrame contract)
     f.t_us = 1000 * ++frames;
+    bool configured = false;
+    for (const std::uint32_t id : known)
+      configured = configured || (!f.extended && f.id == id);
+    bool repeat = configured && have_prev && f.id == prev.id && f.dlc == prev.dlc;
+    for (std::size_t i = 0; repeat && i < f.dlc; ++i)
+      repeat = f.data[i] == prev.data[i];
+    if (configured) {
+      prev = f;
+      have_prev = true;
+    }
     const sbg::FeedResult r = dec.feed(f);
+    FUZZ_CHECK(!repeat || r == sbg::FeedResult::kDuplicate);
     switch (r) {
       case sbg::FeedResult::kIgnored:
         ++ignored;
+        break;
+      case sbg::FeedResult::kDuplicate:
+        ++duplicates;
+        if (!repeat) {
+          // An epoch already sampled: its attitude frame, a fresh EKF_INFO of the same time.
+          FUZZ_CHECK(have_sample && info_since_sample);
+          FUZZ_CHECK(dec.sample().t_ins_us == last_info_time);
+          FUZZ_CHECK(f.id == (cfg.source == sbg::AttitudeMessage::kQuaternion ? ids.ekf_quat
+                                                                              : ids.ekf_euler));
+          info_since_sample = false;
+        }
         break;
       case sbg::FeedResult::kMalformed:
         ++malformed;
@@ -64,6 +91,9 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
         FUZZ_CHECK(info_since_sample);
         info_since_sample = false;
         const hal::AttitudeSample& s = dec.sample();
+        FUZZ_CHECK(!have_sample || s.t_ins_us != last_sample_ins);  // never one epoch twice
+        have_sample = true;
+        last_sample_ins = s.t_ins_us;
         FUZZ_CHECK(s.t_us == f.t_us);
         FUZZ_CHECK(s.t_ins_us == last_info_time);
         double n2 = 0;
@@ -86,6 +116,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   FUZZ_CHECK(c.malformed == malformed);
   FUZZ_CHECK(c.missing_time == missing);
   FUZZ_CHECK(c.ignored == ignored);
-  FUZZ_CHECK(samples + malformed + missing + ignored <= frames);
+  FUZZ_CHECK(c.duplicates == duplicates);
+  FUZZ_CHECK(samples + malformed + missing + ignored + duplicates <= frames);
   return 0;
 }

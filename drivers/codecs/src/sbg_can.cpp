@@ -81,7 +81,24 @@ void CanDecoder::emit(const core::Mat3<double>& r_bn, std::uint64_t t_rx_us) noe
   sample_.flags = flags;
   sample_.solution_mode = static_cast<std::uint8_t>(raw_.solution_status & kSolutionModeMask);
   time_fresh_ = false;
+  have_sample_ = true;
   ++counters_.samples;
+}
+
+bool CanDecoder::same_as_last(const hal::CanFrame& f) noexcept {
+  bool same = have_last_frame_ && f.id == last_frame_.id && f.dlc == last_frame_.dlc;
+  for (std::size_t i = 0; same && i < f.dlc && i < f.data.size(); ++i)
+    same = f.data[i] == last_frame_.data[i];
+  last_frame_ = f;
+  have_last_frame_ = true;
+  return same;
+}
+
+bool CanDecoder::epoch_already_sampled() noexcept {
+  if (!have_sample_ || raw_.ekf_time_us != sample_.t_ins_us) return false;
+  time_fresh_ = false;
+  ++counters_.duplicates;
+  return true;
 }
 
 FeedResult CanDecoder::feed(const hal::CanFrame& f) noexcept {
@@ -92,6 +109,10 @@ FeedResult CanDecoder::feed(const hal::CanFrame& f) noexcept {
   if (!known || f.extended) {
     ++counters_.ignored;
     return FeedResult::kIgnored;
+  }
+  if (same_as_last(f)) {
+    ++counters_.duplicates;
+    return FeedResult::kDuplicate;
   }
   auto malformed = [&] {
     // A corrupt time or attitude frame ends the epoch: the next attitude frame must not be paired
@@ -149,6 +170,7 @@ FeedResult CanDecoder::feed(const hal::CanFrame& f) noexcept {
       ++counters_.missing_time;
       return FeedResult::kMissingTime;
     }
+    if (epoch_already_sampled()) return FeedResult::kDuplicate;
     emit(r_bn_from_sbg_quat(qd), f.t_us);
     return FeedResult::kSample;
   }
@@ -167,6 +189,7 @@ FeedResult CanDecoder::feed(const hal::CanFrame& f) noexcept {
     ++counters_.missing_time;
     return FeedResult::kMissingTime;
   }
+  if (epoch_already_sampled()) return FeedResult::kDuplicate;
   emit(core::r_bn_from_ypr(core::YawPitchRoll<double>{yaw, pitch, roll}), f.t_us);
   return FeedResult::kSample;
 }

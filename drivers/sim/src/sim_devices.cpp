@@ -12,6 +12,9 @@ constexpr std::uint64_t kStreamAdcSat = 0xADC05A70ULL;
 constexpr std::uint64_t kStreamSerialGarbage = 0x5E41A16BULL;
 constexpr std::uint64_t kStreamSerialChecksum = 0x5E41AC5CULL;
 constexpr std::uint64_t kStreamInsCorrupt = 0x1A5C0BB7ULL;
+constexpr std::uint64_t kStreamInsDuplicate = 0x1A5D0B1EULL;
+// A gateway forwards an epoch again after its store-and-forward delay.
+constexpr std::uint64_t kEpochRepeatDelayUs = 1000;
 
 std::uint64_t mix(std::uint64_t seed, std::uint64_t stream) noexcept {
   SplitMix64 sm(seed ^ (stream * 0x9E3779B97F4A7C15ULL));
@@ -238,20 +241,22 @@ hal::Status SimSerialFluxgate::write(std::span<const std::uint8_t> data,
 // ---------------------------------------------------------------- SimSbgIns
 
 SimSbgIns::SimSbgIns(Simulator& sim, const SimSbgConfig& config) noexcept
-    : sim_(sim), config_(config), corrupt_rng_(mix(config.seed, kStreamInsCorrupt)) {}
+    : sim_(sim),
+      config_(config),
+      corrupt_rng_(mix(config.seed, kStreamInsCorrupt)),
+      duplicate_rng_(mix(config.seed, kStreamInsDuplicate)) {}
 
-void SimSbgIns::push(hal::CanFrame f, std::uint64_t t_us, std::uint8_t min_dlc,
-                     bool* corrupted) noexcept {
-  f.t_us = t_us;
-  const bool corrupt = draw(corrupt_rng_, config_.faults.corrupt_probability);
+bool SimSbgIns::corrupt(hal::CanFrame& f, std::uint8_t min_dlc) noexcept {
+  const bool hit = draw(corrupt_rng_, config_.faults.corrupt_probability);
   const std::uint64_t pick = corrupt_rng_.next();
-  if (corrupt) {
-    f.dlc = static_cast<std::uint8_t>(pick % min_dlc);  // shorter than the message requires
-    for (std::size_t i = f.dlc; i < f.data.size(); ++i)
-      f.data[i] = 0;
-    ++injected_.corrupted_frames;
-    if (corrupted != nullptr) *corrupted = true;
-  }
+  if (!hit) return false;
+  f.dlc = static_cast<std::uint8_t>(pick % min_dlc);  // shorter than the message requires
+  for (std::size_t i = f.dlc; i < f.data.size(); ++i)
+    f.data[i] = 0;
+  return true;
+}
+
+void SimSbgIns::push(const hal::CanFrame& f) noexcept {
   if (count_ == kQueue) {
     ++injected_.overflow_frames;
     return;
@@ -281,21 +286,56 @@ void SimSbgIns::emit_epoch(std::uint64_t k, const HostTimeMap& time) noexcept {
           : (static_cast<std::uint32_t>(sbg::SolutionMode::kNavPosition) | sbg::kSolAttitudeValid |
              sbg::kSolHeadingValid | sbg::kSolVelocityValid | sbg::kSolPositionValid);
   const sbg::CanIds& ids = config_.ids;
-  bool time_lost = false;
-  bool attitude_lost = false;
+  // The epoch's frames in bus order, each with the shortest length its message allows.
+  struct Slot {
+    hal::CanFrame frame;
+    bool corrupted;
+  };
+  std::array<Slot, 6> slots{};
+  std::size_t n = 0;
+  auto add = [&](hal::CanFrame f, std::uint8_t min_dlc) {
+    f.t_us = t_rx;
+    const bool hit = corrupt(f, min_dlc);
+    slots[n++] = Slot{f, hit};
+  };
   if (config_.status01_every != 0 && k % config_.status01_every == 0)
-    push(sbg::encode_status_01(ins_time, 0, 0, ids), t_rx, 8, nullptr);
-  push(sbg::encode_ekf_info(ins_time, ids), t_rx, 4, &time_lost);
-  push(sbg::encode_status_03(solution, 0, ids), t_rx, 6, nullptr);
-  push(sbg::encode_orientation_acc(config_.accuracy_rad, config_.accuracy_rad, config_.accuracy_rad,
-                                   ids),
-       t_rx, 6, nullptr);
+    add(sbg::encode_status_01(ins_time, 0, 0, ids), 8);
+  const std::size_t time_slot = n;
+  add(sbg::encode_ekf_info(ins_time, ids), 4);
+  add(sbg::encode_status_03(solution, 0, ids), 6);
+  add(sbg::encode_orientation_acc(config_.accuracy_rad, config_.accuracy_rad, config_.accuracy_rad,
+                                  ids),
+      6);
   const core::YawPitchRoll<double> ypr = core::ypr_from_r_bn(r_bn);
-  push(sbg::encode_ekf_euler(ypr.roll, ypr.pitch, ypr.yaw, ids), t_rx, 6, nullptr);
-  push(sbg::encode_ekf_quat(sbg::sbg_quat_from_r_bn(r_bn), ids), t_rx, 8, &attitude_lost);
+  add(sbg::encode_ekf_euler(ypr.roll, ypr.pitch, ypr.yaw, ids), 6);
+  const std::size_t attitude_slot = n;
+  add(sbg::encode_ekf_quat(sbg::sbg_quat_from_r_bn(r_bn), ids), 8);
+  // Drawn for every epoch so the stream does not depend on the other faults.
+  const bool duplicate = draw(duplicate_rng_, fa.duplicate_probability);
+  const std::uint64_t pick = duplicate_rng_.next();
+  const bool repeat_epoch = duplicate && (pick & 1u) != 0;
+  const std::size_t twice = duplicate && !repeat_epoch ? (pick >> 1) % n : n;
+
+  const bool time_lost = slots[time_slot].corrupted;
+  const bool attitude_lost = slots[attitude_slot].corrupted;
+  const int sends = repeat_epoch ? 2 : 1;
+  for (int copy = 0; copy < sends; ++copy) {
+    for (std::size_t i = 0; i < n; ++i) {
+      hal::CanFrame f = slots[i].frame;
+      f.t_us += static_cast<std::uint64_t>(copy) * kEpochRepeatDelayUs;
+      push(f);
+      if (i == twice) push(f);  // the decoder counts the copy as a duplicate, not as malformed
+      if (slots[i].corrupted) ++injected_.corrupted_frames;
+    }
+    if (time_lost && !attitude_lost) ++injected_.untimed_epochs;
+  }
   ++injected_.epochs;
   if (time_lost || attitude_lost) ++injected_.corrupted_epochs;
-  if (time_lost && !attitude_lost) ++injected_.untimed_epochs;
+  if (twice < n) ++injected_.duplicated_frames;
+  if (repeat_epoch) {
+    ++injected_.repeated_epochs;
+    if (!time_lost && !attitude_lost) ++injected_.repeated_sampled_epochs;
+  }
 }
 
 void SimSbgIns::run_until(double t_s, const HostTimeMap& time) noexcept {

@@ -168,8 +168,9 @@ TEST(SbgCan, CorruptTruncatedAndOutOfOrderFrames) {
   ASSERT_EQ(dec.feed(encode_ekf_quat({1, 0, 0, 0})), FeedResult::kSample);
   EXPECT_EQ(dec.sample().flags & (hal::kAttAttitudeValid | hal::kAttHeadingValid), 0u);
   EXPECT_TRUE(dec.sample().flags & hal::kAttStatusKnown);
-  // One EKF_INFO serves one sample only.
-  EXPECT_EQ(dec.feed(encode_ekf_quat({1, 0, 0, 0})), FeedResult::kMissingTime);
+  // One EKF_INFO serves one sample only (the same quaternion frame again would be a duplicate).
+  EXPECT_EQ(dec.feed(encode_ekf_quat({0, 1, 0, 0})), FeedResult::kMissingTime);
+  EXPECT_EQ(dec.counters().duplicates, 0u);
 }
 
 // The four frames of INS epoch i (10 ms apart): status, time, accuracy, quaternion.
@@ -192,6 +193,67 @@ class FakeCan final : public hal::CanBus {
   std::array<hal::CanFrame, 400> frames{};
   std::size_t next{0};
 };
+
+// CAN double reception (a frame received twice back to back) and a gateway repeating a whole
+// epoch: each copy is dropped and counted, never a second sample of the epoch.
+TEST(SbgCan, DuplicateFramesAndRepeatedEpochsAreDroppedAndCounted) {
+  for (const AttitudeMessage source : {AttitudeMessage::kQuaternion, AttitudeMessage::kEuler}) {
+    DecoderConfig cfg;
+    cfg.source = source;
+    CanDecoder dec(cfg);
+    const hal::CanFrame status = encode_status_03(0x34, 0);
+    const hal::CanFrame info = encode_ekf_info(1000);
+    const hal::CanFrame quat = encode_ekf_quat({1, 0, 0, 0});
+    const hal::CanFrame euler = encode_ekf_euler(0.1, 0.2, 0.3);
+    const hal::CanFrame& attitude = source == AttitudeMessage::kQuaternion ? quat : euler;
+    const hal::CanFrame& other = source == AttitudeMessage::kQuaternion ? euler : quat;
+    EXPECT_EQ(dec.feed(status), FeedResult::kConsumed);
+    EXPECT_EQ(dec.feed(status), FeedResult::kDuplicate);  // every configured ID is checked
+    EXPECT_EQ(dec.feed(info), FeedResult::kConsumed);
+    EXPECT_EQ(dec.feed(info), FeedResult::kDuplicate);
+    EXPECT_EQ(dec.feed(other), FeedResult::kConsumed);
+    ASSERT_EQ(dec.feed(attitude), FeedResult::kSample);
+    // The attitude frame received twice: before this rule, a missing time.
+    EXPECT_EQ(dec.feed(attitude), FeedResult::kDuplicate);
+    EXPECT_EQ(dec.counters().duplicates, 3u);
+    EXPECT_EQ(dec.counters().missing_time, 0u);
+
+    // The whole epoch again, later (a gateway): the EKF_INFO time is the last sample's.
+    hal::CanFrame late = attitude;
+    late.t_us = 5000;
+    EXPECT_EQ(dec.feed(status), FeedResult::kConsumed);
+    EXPECT_EQ(dec.feed(info), FeedResult::kConsumed);
+    EXPECT_EQ(dec.feed(other), FeedResult::kConsumed);
+    EXPECT_EQ(dec.feed(late), FeedResult::kDuplicate);
+    EXPECT_EQ(dec.counters().duplicates, 4u);
+    EXPECT_EQ(dec.counters().samples, 1u);
+    // The repeated epoch ended there: its time does not serve the next attitude frame.
+    EXPECT_EQ(dec.feed(other), FeedResult::kConsumed);
+    EXPECT_EQ(dec.feed(attitude), FeedResult::kMissingTime);
+
+    // A malformed frame received twice: one malformed, one duplicate.
+    const hal::CanFrame short_info = frame(0x130, {1, 2, 3});
+    EXPECT_EQ(dec.feed(short_info), FeedResult::kMalformed);
+    EXPECT_EQ(dec.feed(short_info), FeedResult::kDuplicate);
+    EXPECT_EQ(dec.counters().malformed, 1u);
+    EXPECT_EQ(dec.counters().duplicates, 5u);
+
+    // The next epoch, with the same attitude as before, is a new sample: only the time decides.
+    EXPECT_EQ(dec.feed(encode_ekf_info(11000)), FeedResult::kConsumed);
+    ASSERT_EQ(dec.feed(attitude), FeedResult::kSample);
+    EXPECT_EQ(dec.sample().t_ins_us, 11000u);
+    // A frame of another ID in between makes the same frame again a legitimate one.
+    EXPECT_EQ(dec.feed(encode_ekf_info(21000)), FeedResult::kConsumed);
+    EXPECT_EQ(dec.feed(other), FeedResult::kConsumed);
+    EXPECT_EQ(dec.feed(attitude), FeedResult::kSample);
+    EXPECT_EQ(dec.counters().samples, 3u);
+    EXPECT_EQ(dec.counters().duplicates, 5u);
+    // Frames of IDs the decoder does not use neither count nor separate two copies.
+    EXPECT_EQ(dec.feed(encode_ekf_info(31000)), FeedResult::kConsumed);
+    EXPECT_EQ(dec.feed(frame(0x7FF, {1})), FeedResult::kIgnored);
+    EXPECT_EQ(dec.feed(encode_ekf_info(31000)), FeedResult::kDuplicate);
+  }
+}
 
 TEST(SbgCan, AttitudeSourceOverCanBusWithoutAllocations) {
   FakeCan bus;

@@ -298,6 +298,43 @@ TEST(SimSbgIns, CorruptedFramesAreCountedAsMalformed) {
   EXPECT_EQ(inj.overflow_frames, 0u);
 }
 
+// Duplicates alone and next to truncated frames: the real decoder drops every copy (a frame
+// received twice, the repeat of an epoch it had sampled) and re-counts what a repeated corrupt
+// epoch loses; no epoch gives two samples.
+TEST(SimSbgIns, DuplicatedFramesAndRepeatedEpochsAreDroppedAndCounted) {
+  for (const double corrupt : {0.0, 0.03}) {
+    Simulator sim(short_survey(6000), 10);
+    SimRigConfig rc = spi_rig();
+    rc.ins.faults.duplicate_probability = 0.1;
+    rc.ins.faults.corrupt_probability = corrupt;
+    SimRig rig(sim, rc);
+    drivers::sbg::CanAttitudeSource ins(rig.ins());
+    std::uint32_t n = 0;
+    std::uint64_t last_ins_us = 0;
+    while (rig.step()) {
+      hal::AttitudeSample a;
+      while (ins.read(a, 0) == hal::Status::kOk) {
+        EXPECT_TRUE(n == 0 || a.t_ins_us > last_ins_us) << "an epoch sampled twice";
+        last_ins_us = a.t_ins_us;
+        ++n;
+      }
+    }
+    const auto& inj = rig.ins().injected();
+    EXPECT_GT(inj.duplicated_frames, 30u);
+    EXPECT_GT(inj.repeated_epochs, 30u);
+    EXPECT_EQ(ins.counters().duplicates, inj.duplicated_frames + inj.repeated_sampled_epochs);
+    EXPECT_EQ(ins.counters().malformed, inj.corrupted_frames);
+    EXPECT_EQ(ins.counters().missing_time, inj.untimed_epochs);
+    EXPECT_EQ(n, inj.epochs - inj.corrupted_epochs);
+    EXPECT_EQ(inj.overflow_frames, 0u);
+    if (corrupt > 0) {
+      EXPECT_LT(inj.repeated_sampled_epochs, inj.repeated_epochs);  // some repeats fail again
+    } else {
+      EXPECT_EQ(inj.repeated_sampled_epochs, inj.repeated_epochs);
+    }
+  }
+}
+
 TEST(SimSbgIns, GapAndInvalidStatusWindows) {
   Simulator sim(short_survey(4000), 10);  // 20 s
   SimRigConfig rc = spi_rig();

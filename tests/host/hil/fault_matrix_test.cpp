@@ -6,7 +6,8 @@
 //     ones (nothing else moves);
 //   - the outputs stay right: one record per delivered sample, dropouts NaN + kOutDropout, and
 //     every record the fault did not touch bit-identical to the fault-free run (magnetometer
-//     faults), or with h_s and |h| bit-identical (attitude and clock faults touch only h_n).
+//     faults), or with h_s and |h| bit-identical (attitude and clock faults touch only h_n), or
+//     every record bit-identical (faults the drivers must absorb: INS duplicates).
 // FaultMatrix.Table runs them all once more and prints the README's table (markdown); with
 // MAGVEC_FAULT_TABLE=FILE it also writes it there.
 #include <gtest/gtest.h>
@@ -39,6 +40,7 @@ using Session = HilSession<NullCalibrator>;
 
 constexpr std::uint32_t kSamples = 20'000;  // 20 s at 1 kHz, 2000 INS epochs
 constexpr double kRateHz = 1000;
+constexpr std::size_t kCases = 13;  // rows of the matrix (cases())
 
 class StoreSink final : public hal::RecordSink {
  public:
@@ -52,6 +54,7 @@ class StoreSink final : public hal::RecordSink {
 enum class Touches : std::uint8_t {
   kMagnetometer,  // records of untouched samples bit-identical to the fault-free run
   kAttitude,      // every record's raw, h_s and |h| bit-identical; h_n may change
+  kNothing,       // every record bit-identical to the fault-free run
 };
 
 struct FaultCase {
@@ -225,6 +228,19 @@ std::vector<FaultCase> cases() {
        "epoch lost when its time or attitude frame is hit: attitude interpolated across "
        "the 20-ms gap"});
   v.push_back(
+      {"INS frame received twice or epoch repeated",
+       "ins-duplicate=5e-2",
+       MagLink::kSpi,
+       [](ScenarioConfig&, SimRigConfig& rc) { rc.ins.faults.duplicate_probability = 5e-2; },
+       [](Session& s, const ExpectedCounts&) {
+         const auto& i = s.rig().ins().injected();
+         return std::uint64_t{i.duplicated_frames} + i.repeated_epochs;
+       },
+       {"att.duplicates"},
+       Touches::kNothing,
+       "dropped by the SBG decoder (a frame identical to the previous one; an epoch whose "
+       "INS time was sampled already): every record bit-identical"});
+  v.push_back(
       {"INS outage (no CAN frames)",
        "ins-gap=8:1",
        MagLink::kSpi,
@@ -366,7 +382,10 @@ TEST_P(FaultMatrix, CountedExactlyNothingElseMovesOutputsRight) {
       continue;
     }
     EXPECT_FALSE(flagged) << "a clean sample flagged as a spike at t_us " << rec.t_us;
-    if (fc.touches == Touches::kMagnetometer) {
+    if (fc.touches == Touches::kNothing) {
+      ASSERT_EQ(r.records.size(), base.records.size());
+      EXPECT_TRUE(same_record(rec, base.records[i])) << "record changed at record " << i;
+    } else if (fc.touches == Touches::kMagnetometer) {
       const auto it = base_by_t.find(rec.t_us);
       ASSERT_NE(it, base_by_t.end()) << "record at a time the fault-free run has none";
       EXPECT_TRUE(same_record(rec, *it->second)) << "record changed at t_us " << rec.t_us;
@@ -384,7 +403,7 @@ TEST_P(FaultMatrix, CountedExactlyNothingElseMovesOutputsRight) {
   EXPECT_GT(untouched, r.records.size() / 2);
 }
 
-INSTANTIATE_TEST_SUITE_P(EveryFault, FaultMatrix, ::testing::Range<std::size_t>(0, 12),
+INSTANTIATE_TEST_SUITE_P(EveryFault, FaultMatrix, ::testing::Range<std::size_t>(0, kCases),
                          [](const ::testing::TestParamInfo<std::size_t>& p) {
                            std::string n = cases()[p.param].name;
                            std::string out;
@@ -394,7 +413,7 @@ INSTANTIATE_TEST_SUITE_P(EveryFault, FaultMatrix, ::testing::Range<std::size_t>(
                          });
 
 TEST(FaultMatrixTable, CasesAreAllInstantiated) {
-  EXPECT_EQ(cases().size(), 12u);
+  EXPECT_EQ(cases().size(), kCases);
 }
 
 // The README table, from the runs themselves.

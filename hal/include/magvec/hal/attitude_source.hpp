@@ -32,6 +32,7 @@ struct AttitudeCounters {
   std::uint32_t malformed{0};     // frames with a wrong length or out-of-range content
   std::uint32_t missing_time{0};  // attitude frames without a matching time frame
   std::uint32_t ignored{0};       // frames with an ID the decoder does not use
+  std::uint32_t duplicates{0};    // frames or epochs received twice, dropped
   std::uint32_t bus_errors{0};
 };
 

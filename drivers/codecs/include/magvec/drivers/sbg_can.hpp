@@ -23,6 +23,13 @@
 // solution status received are attached. An attitude frame without a fresh EKF_INFO is counted
 // as missing_time and dropped (no timestamp to align it with). A malformed EKF_INFO or attitude
 // frame also ends the epoch, so a later attitude frame is never stamped with a stale epoch time.
+// Duplicates are dropped and counted (duplicates), never turned into a second sample:
+//   - a frame identical (ID, DLC, bytes) to the previous frame of a configured ID: CAN double
+//     reception (the receivers took the frame, the transmitter saw an error in its last bits and
+//     sent it again). No configured message repeats back to back otherwise: EKF_INFO's time stamp
+//     changes every epoch and separates the others.
+//   - an epoch whose EKF_INFO time equals the last sample's (a gateway repeating an epoch): its
+//     attitude frame would give the same INS time a later receive time, i.e. a wrong attitude time.
 // Not verified here: the 8-byte EKF_INFO variant of newer firmware (TIME_STAMP + solution status
 // bits) is accepted as long as the first 4 bytes are the time stamp; extra bytes are ignored.
 #pragma once
@@ -87,6 +94,7 @@ enum class FeedResult : std::uint8_t {
   kSample,       // a new attitude sample is available via sample()
   kMalformed,    // wrong length / extended ID / out-of-range content (counted)
   kMissingTime,  // attitude frame without a preceding EKF_INFO (counted)
+  kDuplicate,    // the previous frame again, or an epoch already sampled (counted)
 };
 
 class CanDecoder {
@@ -101,14 +109,21 @@ class CanDecoder {
 
  private:
   void emit(const core::Mat3<double>& r_bn, std::uint64_t t_rx_us) noexcept;
+  // Whether `f` repeats the previous configured frame (remembers `f` either way).
+  bool same_as_last(const hal::CanFrame& f) noexcept;
+  // Whether the fresh EKF_INFO time is the last sample's: then the epoch ends here, counted.
+  bool epoch_already_sampled() noexcept;
 
   DecoderConfig config_;
   RawState raw_{};
   hal::AttitudeSample sample_{};
   hal::AttitudeCounters counters_{};
+  hal::CanFrame last_frame_{};  // previous frame of a configured ID (double reception)
   bool time_fresh_{false};
   bool status_known_{false};
   bool accuracy_known_{false};
+  bool have_last_frame_{false};
+  bool have_sample_{false};
 };
 
 // Conversions between SBG payload conventions and the core's R_bn.

@@ -24,7 +24,10 @@
 //        sent (the consumer sees a time gap of one period).
 //   INS: a gap (no CAN frame at all for a time window), "attitude invalid" status for a window
 //        (STATUS_03 without ATTITUDE/HEADING_VALID), CAN receive latency, corrupted frames
-//        (truncated DLC: always rejected as malformed by the decoder).
+//        (truncated DLC: always rejected as malformed by the decoder), duplicates: an epoch has
+//        one of its frames received twice back to back (CAN double reception) or, as often, is
+//        repeated whole 1 ms later (a gateway); the copies carry the original's bytes, corrupted
+//        or not.
 //   Clock jumps: SimRig shifts every host timestamp (DRDY edges, CAN receive times, SimClock) by
 //        a signed amount from a given time on. A backwards jump violates the hal::Clock contract
 //        on purpose: it is the fault under test.
@@ -200,6 +203,7 @@ struct SimSbgFaults {
   double gap_length_s{0};
   double invalid_start_s{std::numeric_limits<double>::infinity()};  // attitude invalid window
   double invalid_length_s{0};
+  double duplicate_probability{0};  // per epoch: a frame received twice, or the epoch repeated
 };
 
 struct SimSbgConfig {
@@ -217,11 +221,19 @@ struct SimSbgInjected {
   std::uint32_t epochs{0};          // epochs with attitude frames sent
   std::uint32_t gap_epochs{0};      // epochs not sent (gap)
   std::uint32_t invalid_epochs{0};  // epochs sent with attitude invalid
+  // Corrupted frames queued: a repeated epoch's count again, a frame received twice once (the
+  // decoder counts its copy as a duplicate).
   std::uint32_t corrupted_frames{0};
   std::uint32_t corrupted_epochs{0};  // epochs whose attitude sample the decoder cannot produce
-  // Of those, the epochs whose EKF_INFO (time) frame was corrupted but whose attitude frame was
-  // intact: the decoder sees an attitude frame without its time (its missing_time counter).
+  // Attitude frames queued intact after a corrupted EKF_INFO (time) frame of their epoch: the
+  // decoder sees an attitude frame without its time (its missing_time counter); a repeated
+  // epoch's counts again.
   std::uint32_t untimed_epochs{0};
+  std::uint32_t duplicated_frames{0};  // frames received twice back to back (one copy each)
+  std::uint32_t repeated_epochs{0};    // epochs sent twice
+  // Of those, the epochs the decoder turned into a sample the first time: the repeat is a
+  // duplicate epoch. The others fail again as the first time did.
+  std::uint32_t repeated_sampled_epochs{0};
   std::uint32_t frames{0};           // frames queued
   std::uint32_t overflow_frames{0};  // frames lost because the bus queue was full
   std::uint32_t sent_by_host{0};     // frames the host sent to the INS (ignored)
@@ -245,11 +257,14 @@ class SimSbgIns final : public hal::CanBus {
 
  private:
   void emit_epoch(std::uint64_t k, const HostTimeMap& time) noexcept;
-  void push(hal::CanFrame f, std::uint64_t t_us, std::uint8_t min_dlc, bool* corrupted) noexcept;
+  // Truncates `f` below min_dlc with the corruption probability; true if it did.
+  bool corrupt(hal::CanFrame& f, std::uint8_t min_dlc) noexcept;
+  void push(const hal::CanFrame& f) noexcept;
 
   Simulator& sim_;
   SimSbgConfig config_;
   Xoshiro256 corrupt_rng_;
+  Xoshiro256 duplicate_rng_;
   SimSbgInjected injected_{};
   std::uint64_t next_epoch_{0};
   std::array<hal::CanFrame, kQueue> queue_{};

@@ -40,6 +40,8 @@ struct ExpectedCounts {
   std::uint64_t att_reordered{0};
   std::uint64_t att_malformed{0};     // corrupted CAN frames
   std::uint64_t att_missing_time{0};  // epochs whose time frame was corrupted, attitude intact
+  // Frames received twice and repeats of epochs the decoder had sampled: dropped by the decoder.
+  std::uint64_t att_duplicates{0};
   // Spikes the pipeline's screen must flag: on a screenable sample (delivered, not a dropout or
   // a device error) between two screenable, unspiked neighbours on one time base. A spike
   // next to another spike, an unscreenable neighbour or a time jump, or among the screen's
@@ -153,6 +155,8 @@ class FaultLedger {
     const std::uint32_t invalid = i.invalid_epochs - ins_.invalid_epochs;
     e_.att_malformed += i.corrupted_frames - ins_.corrupted_frames;
     e_.att_missing_time += i.untimed_epochs - ins_.untimed_epochs;
+    e_.att_duplicates += (i.duplicated_frames - ins_.duplicated_frames) +
+                         (i.repeated_sampled_epochs - ins_.repeated_sampled_epochs);
     ins_ = i;
     const std::uint32_t n = sent + gap;
     if (n == 0) return;
@@ -272,6 +276,8 @@ std::vector<CounterCheck> counter_checks(Session& session, const ExpectedCounts&
   add("att.malformed", "CAN frame truncated", ac.malformed, e.att_malformed);
   add("att.missing_time", "EKF_INFO truncated, attitude frame intact", ac.missing_time,
       e.att_missing_time);
+  add("att.duplicates", "CAN frame received twice, sampled epoch repeated", ac.duplicates,
+      e.att_duplicates);
   add("att.samples", "INS epochs decoded", ac.samples, e.att_delivered);
   add("att_samples", "INS epochs decoded", c.att_samples, e.att_delivered);
   add("att_invalid", "INS attitude-invalid window", c.att_invalid, e.att_invalid);

@@ -17,6 +17,7 @@
 #include <thread>
 #include <vector>
 
+#include "logged_daemon.hpp"
 #include "magvec/host/daemon/event_pipeline.hpp"
 #include "magvec/host/daemon/lcm_codec.hpp"
 #include "magvec/host/daemon/replay.hpp"
@@ -25,6 +26,9 @@
 
 namespace magvec::host::daemon {
 namespace {
+
+using test::fast_config_text;
+using test::VectorSink;
 
 SolveJob job_returning(std::uint32_t ticket, std::atomic<bool>* release = nullptr) {
   return [ticket, release] {
@@ -98,65 +102,10 @@ TEST(SolveWorker, DestructionWaitsForTheRunningJob) {
   EXPECT_TRUE(finished.load());
 }
 
-struct VectorSink final : hal::RecordSink {
-  std::vector<hal::OutputRecord> records;
-  hal::Status emit(const hal::OutputRecord& r) noexcept override {
-    records.push_back(r);
-    return hal::Status::kOk;
-  }
-};
-
-std::string fast_config_text() {
-  std::string text = default_config_text();
-  auto patch = [&text](const std::string& from, const std::string& to) {
-    text.replace(text.find(from), from.size(), to);
-  };
-  patch("samples_per_attitude = 10", "samples_per_attitude = 1");
-  patch("li_min_samples = 300", "li_min_samples = 100");
-  patch("validation_samples = 200", "validation_samples = 100");
-  return text;
-}
-
 // Publishes (into an LCM log) and applies, as magvecd does; the solve runs on a SolveWorker and
 // its result is installed when it arrives, at whatever sample that is.
-struct LiveDaemon {
-  struct LoggingSink final : hal::RecordSink {
-    LiveDaemon* d{nullptr};
-    std::vector<hal::OutputRecord> records;
-    hal::Status emit(const hal::OutputRecord& r) noexcept override {
-      records.push_back(r);
-      d->record("MAGVEC_OUTPUT", to_lcm(r));
-      return hal::Status::kOk;
-    }
-  };
-  explicit LiveDaemon(lcm::LogFile& l) : log(l) { sink.d = this; }
-  template <typename Msg>
-  void record(const std::string& ch, const Msg& m) {
-    std::vector<std::uint8_t> buf(static_cast<std::size_t>(m.getEncodedSize()));
-    m.encode(buf.data(), 0, static_cast<int>(buf.size()));
-    lcm::LogEvent ev;
-    ev.eventnum = 0;
-    ev.timestamp = ++t;
-    ev.channel = ch;
-    ev.datalen = static_cast<std::int32_t>(buf.size());
-    ev.data = buf.data();
-    ASSERT_EQ(log.writeEvent(&ev), 0);
-  }
-  void event(const magvec_lcm::pipeline_event& e) {
-    record("MAGVEC_PIPELINE", e);
-    ep.apply(e);
-  }
-  void on_attitude(const hal::AttitudeSample& a) {
-    const auto m = to_lcm(a);
-    record("MAGVEC_ATTITUDE", m);
-    ep.apply(m);
-  }
-  void on_magnetometer(const hal::MagnetometerSample& s, double f) {
-    const auto m = to_lcm(s, f);
-    record("MAGVEC_RAW_MAG", m);
-    ep.apply(m);
-  }
-  void on_read_error(hal::Status) { ep.pipeline()->on_read_error(); }
+struct LiveDaemon : test::LoggedDaemon {
+  explicit LiveDaemon(lcm::LogFile& l) { log = &l; }
   void after_event() {
     if (SolveJob job = ep.pipeline()->take_solve_job()) {
       worker.submit(1, std::move(job));
@@ -165,11 +114,7 @@ struct LiveDaemon {
     if (auto d = worker.take_result()) event(solve_result_event(++sequence, d->result));
   }
 
-  lcm::LogFile& log;
-  LoggingSink sink;
-  EventPipeline ep{sink};
   SolveWorker worker;
-  std::int64_t t{0};
   std::int64_t sequence{10};
   int jobs{0};
 };

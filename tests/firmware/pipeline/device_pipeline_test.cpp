@@ -61,9 +61,10 @@ core::PipelineConfig<Scalar> config() {
 template <typename Scalar>
 using Pipe = pipeline::DevicePipeline<Scalar, IdleCalibrator<Scalar>, 64, 64>;
 
-// 200 Hz magnetometer, 100 Hz INS received kLatencyUs after its epoch, fed in arrival order.
-template <typename Scalar, typename Emit>
-void feed_stream(Pipe<Scalar>& p, int samples, Emit&& emit) {
+// 200 Hz magnetometer, 100 Hz INS received kLatencyUs after its epoch, fed in arrival order;
+// modify(i, sample) may change each magnetometer sample before it is fed (noise, spikes, steps).
+template <typename Scalar, typename Emit, typename Modify>
+void feed_stream(Pipe<Scalar>& p, int samples, Emit&& emit, Modify&& modify) {
   std::uint64_t next_ins = 0;
   for (int i = 0; i < samples; ++i) {
     const std::uint64_t t = 100'000 + 5'000 * static_cast<std::uint64_t>(i);
@@ -71,11 +72,18 @@ void feed_stream(Pipe<Scalar>& p, int samples, Emit&& emit) {
       p.on_attitude(ins_sample(next_ins), emit);
       next_ins += 10'000;
     }
-    p.on_magnetometer(mag_sample(t), static_cast<Scalar>(kField.norm()), emit);
+    hal::MagnetometerSample s = mag_sample(t);
+    modify(i, s);
+    p.on_magnetometer(s, static_cast<Scalar>(kField.norm()), emit);
   }
   for (int k = 0; k < 20; ++k, next_ins += 10'000)
     p.on_attitude(ins_sample(next_ins), emit);
   p.flush(emit);
+}
+
+template <typename Scalar, typename Emit>
+void feed_stream(Pipe<Scalar>& p, int samples, Emit&& emit) {
+  feed_stream(p, samples, emit, [](int, hal::MagnetometerSample&) {});
 }
 
 TEST(DevicePipeline, LateInsFramesAreWaitedForAndInterpolated) {
@@ -271,26 +279,15 @@ void spikes_flagged_exactly(double noise_nT) {
   std::normal_distribution<double> noise(0, noise_nT);
   std::uniform_real_distribution<double> u(0, 1);
   std::set<std::uint64_t> spiked;
-  std::uint64_t next_ins = 0;
-  for (int i = 0; i < 4000; ++i) {
-    const std::uint64_t t = 100'000 + 5'000 * static_cast<std::uint64_t>(i);
-    while (next_ins + kLatencyUs <= t) {
-      p.on_attitude(ins_sample(next_ins), emit);
-      next_ins += 10'000;
-    }
-    hal::MagnetometerSample s = mag_sample(t);
+  feed_stream(p, 4000, emit, [&](int i, hal::MagnetometerSample& s) {
     for (double& v : s.m_nT)
       v += noise(rng);
     if (i > 40 && u(rng) < 0.01) {
       const auto axis = static_cast<std::size_t>(u(rng) * 3) % 3;
       s.m_nT[axis] += (u(rng) < 0.5 ? -1 : 1) * (200 + 1800 * u(rng));
-      spiked.insert(t);
+      spiked.insert(s.t_us);
     }
-    p.on_magnetometer(s, static_cast<Scalar>(kField.norm()), emit);
-  }
-  for (int k = 0; k < 20; ++k, next_ins += 10'000)
-    p.on_attitude(ins_sample(next_ins), emit);
-  p.flush(emit);
+  });
   ASSERT_EQ(out.size(), 4000u);
   ASSERT_GT(spiked.size(), 20u);
   std::size_t flagged = 0;
@@ -322,19 +319,10 @@ TEST(DevicePipeline, StepsAndNoiseFreeDataAreNotSpikes) {
   auto emit = [&](const core::OutputRecord<double>& r) {
     spikes += (r.flags & core::kOutSpike) != 0 ? 1u : 0u;
   };
-  std::uint64_t next_ins = 0;
-  for (int i = 0; i < 2000; ++i) {
-    const std::uint64_t t = 100'000 + 5'000 * static_cast<std::uint64_t>(i);
-    while (next_ins + kLatencyUs <= t) {
-      p.on_attitude(ins_sample(next_ins), emit);
-      next_ins += 10'000;
-    }
-    hal::MagnetometerSample s = mag_sample(t);
+  feed_stream(p, 2000, emit, [](int i, hal::MagnetometerSample& s) {
     // Steps of 1 uT every 100 samples, in alternating directions, on top of the rotation.
     s.m_nT[1] += 1000.0 * static_cast<double>((i / 100) % 2);
-    p.on_magnetometer(s, static_cast<double>(kField.norm()), emit);
-  }
-  p.flush(emit);
+  });
   EXPECT_EQ(spikes, 0u);
   EXPECT_EQ(p.counters().spikes, 0u);
   EXPECT_GT(p.counters().spike_screened, 1900u);

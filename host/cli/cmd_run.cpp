@@ -131,8 +131,9 @@ void run_session(const RunOptions& o, drivers::sim::Simulator& sim,
   std::cout << "  magnetometer: steps " << c.steps << ", samples " << mc.samples << ", crc errors "
             << mc.crc_errors << ", malformed " << mc.malformed << ", garbage bytes "
             << mc.garbage_bytes << ", saturated " << mc.saturated << ", stuck " << mc.stuck
-            << ", not fresh (dropouts) " << c.mag_not_fresh << ", missing " << c.mag_missing
-            << ", time jumps " << c.mag_time_jumps << "\n";
+            << ", device resets " << mc.device_resets << ", not fresh (dropouts) "
+            << c.mag_not_fresh << ", missing " << c.mag_missing << ", time jumps "
+            << c.mag_time_jumps << "\n";
   std::cout << "  attitude: samples " << ac.samples << ", malformed frames " << ac.malformed
             << ", missing time " << ac.missing_time << ", duplicates " << ac.duplicates
             << ", invalid " << c.att_invalid << ", gaps " << c.att_gaps << ", time jumps "

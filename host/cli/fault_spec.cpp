@@ -56,6 +56,13 @@ void apply_faults(const std::string& spec, drivers::sim::ScenarioConfig* sc,
       rc->adc.faults.crc_error_probability = probability(option, key, val);
     } else if (key == "saturation") {
       rc->adc.faults.saturation_probability = probability(option, key, val);
+    } else if (key == "adc-reset") {
+      rc->adc.faults.reset_probability = probability(option, key, val);
+    } else if (key == "stuck") {
+      std::tie(rc->adc.faults.stuck_start_s, rc->adc.faults.stuck_length_s) =
+          pair_of(option, key, val);
+      if (rc->adc.faults.stuck_length_s < 0)
+        throw CLI::ValidationError(option, "stuck: LENGTH must be >= 0");
     } else if (key == "dropout") {
       sc->dropout_probability = probability(option, key, val);
     } else if (key == "spike") {

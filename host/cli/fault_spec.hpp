@@ -11,7 +11,8 @@ namespace magvec::host::cli {
 
 // Help text of the option (every key).
 inline constexpr const char* kFaultsHelp =
-    "Comma-separated faults: crc=P, saturation=P, dropout=P, spike=P (SPI/any), garbage=P, "
+    "Comma-separated faults: crc=P, saturation=P, adc-reset=P, stuck=START:LEN (SPI), "
+    "dropout=P, spike=P (any), garbage=P, "
     "bad-checksum=P (serial), ins-corrupt=P, ins-duplicate=P, ins-gap=START:LEN, "
     "ins-invalid=START:LEN, "
     "ins-latency-us=N, clock-jump=AT:JUMP_S";

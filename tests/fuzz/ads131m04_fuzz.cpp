@@ -27,7 +27,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   cfg.nT_per_volt = {1e4, -2e4, 5e3};
   Ads131FrameDecoder dec(cfg);
 
-  std::uint64_t frames = 0, oks = 0;
+  std::uint64_t frames = 0, oks = 0, resets = 0;
   std::uint32_t last_sequence = 0;
   // Independent model of the stuck detector: the same code stuck_count times in a row among the
   // accepted frames.
@@ -84,11 +84,13 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
     FUZZ_CHECK(((s.flags & hal::kMagNotFresh) != 0) == not_fresh);
     FUZZ_CHECK(((s.flags & hal::kMagDeviceReset) != 0) ==
                ((r.response & ads131::kStatusReset) != 0));
+    if ((s.flags & hal::kMagDeviceReset) != 0) ++resets;
   }
   const hal::MagCounters& c = dec.counters();
   FUZZ_CHECK(c.samples == oks);
   FUZZ_CHECK(std::uint64_t{c.samples} + c.crc_errors + c.malformed == frames);
   FUZZ_CHECK(c.saturated <= c.samples && c.stuck <= c.samples);
+  FUZZ_CHECK(c.device_resets == resets);
   FUZZ_CHECK(c.overflows == 0 && c.garbage_bytes == 0 && c.timeouts == 0 && c.bus_errors == 0);
   return 0;
 }

@@ -49,6 +49,7 @@ hal::Status Ads131FrameDecoder::decode(std::span<const std::uint8_t, kFrameBytes
   ++counters_.samples;
   if ((flags & hal::kMagSaturated) != 0) ++counters_.saturated;
   if ((flags & hal::kMagStuck) != 0) ++counters_.stuck;
+  if ((flags & hal::kMagDeviceReset) != 0) ++counters_.device_resets;
   return hal::Status::kOk;
 }
 
@@ -73,17 +74,33 @@ hal::Status Ads131Fluxgate::init() noexcept {
   if (auto s = exchange(kCmdReset, {}, r, crc_ok); s != hal::Status::kOk) return s;
   if (auto s = exchange(kCmdNull, {}, r, crc_ok); s != hal::Status::kOk) return s;
   if (!crc_ok || r.response != kResetResponse) return hal::Status::kNotReady;
-  const std::array<std::uint16_t, 1> gain{gain1_register(decoder_.config().gain_code)};
-  if (auto s = exchange(wreg(kRegGain1, 1), gain, r, crc_ok); s != hal::Status::kOk) return s;
-  if (auto s = exchange(kCmdNull, {}, r, crc_ok); s != hal::Status::kOk) return s;
-  if (!crc_ok || r.response != wreg_response(kRegGain1, 1)) return hal::Status::kNotReady;
+  if (auto s = write_register(kRegGain1, gain1_register(decoder_.config().gain_code));
+      s != hal::Status::kOk) {
+    return s;
+  }
+  // Cleared last: a data frame with STATUS.RESET is then a reset after this configuration.
+  const auto mode = static_cast<std::uint16_t>(kModeResetValue & ~kModeReset);
+  if (auto s = write_register(kRegMode, mode); s != hal::Status::kOk) return s;
   decoder_.reset_stuck_detector();
   initialised_ = true;
+  reinit_pending_ = false;
+  return hal::Status::kOk;
+}
+
+hal::Status Ads131Fluxgate::write_register(std::uint8_t address, std::uint16_t value) noexcept {
+  Response r;
+  bool crc_ok = false;
+  const std::array<std::uint16_t, 1> data{value};
+  if (auto s = exchange(wreg(address, 1), data, r, crc_ok); s != hal::Status::kOk) return s;
+  if (auto s = exchange(kCmdNull, {}, r, crc_ok); s != hal::Status::kOk) return s;
+  if (!crc_ok || r.response != wreg_response(address, 1)) return hal::Status::kNotReady;
   return hal::Status::kOk;
 }
 
 hal::Status Ads131Fluxgate::read(hal::MagnetometerSample& out, std::uint32_t timeout_us) noexcept {
-  if (!initialised_) return hal::Status::kNotReady;
+  if (!initialised_ && (!reinit_pending_ || init() != hal::Status::kOk)) {
+    return hal::Status::kNotReady;
+  }
   hal::EdgeEvent ev;
   // Only a falling edge (DRDY is active low) announces a conversion; rising edges are skipped.
   do {
@@ -104,7 +121,13 @@ hal::Status Ads131Fluxgate::read(hal::MagnetometerSample& out, std::uint32_t tim
     ++decoder_.counters().bus_errors;
     return hal::Status::kBusError;
   }
-  return decoder_.decode(rx, ev.t_us, out);
+  const hal::Status s = decoder_.decode(rx, ev.t_us, out);
+  if (s == hal::Status::kOk && (out.flags & hal::kMagDeviceReset) != 0) {
+    // The registers are back at their defaults: configure the device again before the next
+    // conversion is read. This sample stays flagged (converted with the default gains).
+    if (init() != hal::Status::kOk) reinit_pending_ = true;
+  }
+  return s;
 }
 
 }  // namespace magvec::drivers

@@ -9,6 +9,7 @@ namespace {
 // Distinct stream identifiers so that device faults never share draws with the simulator.
 constexpr std::uint64_t kStreamAdcCrc = 0xADC0C4C0ULL;
 constexpr std::uint64_t kStreamAdcSat = 0xADC05A70ULL;
+constexpr std::uint64_t kStreamAdcReset = 0xADC0E5E7ULL;
 constexpr std::uint64_t kStreamSerialGarbage = 0x5E41A16BULL;
 constexpr std::uint64_t kStreamSerialChecksum = 0x5E41AC5CULL;
 constexpr std::uint64_t kStreamInsCorrupt = 0x1A5C0BB7ULL;
@@ -41,7 +42,31 @@ SimAds131Device::SimAds131Device(const SimAds131Config& config) noexcept
     : config_(config),
       crc_rng_(mix(config.seed, kStreamAdcCrc)),
       sat_rng_(mix(config.seed, kStreamAdcSat)),
+      reset_rng_(mix(config.seed, kStreamAdcReset)),
       pending_response_(ads131::kStatusResetValue) {}
+
+void SimAds131Device::reset_registers() noexcept {
+  reset_flag_ = true;
+  gain1_ = 0;
+  drdy_bits_ = 0;
+  pending_is_status_ = true;
+}
+
+bool SimAds131Device::stuck_in(const std::array<std::int32_t, ads131::kChannels>& codes) noexcept {
+  bool stuck = false;
+  for (std::size_t axis = 0; axis < 3; ++axis) {
+    const std::int32_t code = codes[config_.transfer.channel_of_axis[axis] & 3u];
+    if (code == seen_code_[axis]) {
+      if (seen_run_[axis] < 0xFFFFFFFFu) ++seen_run_[axis];
+    } else {
+      seen_code_[axis] = code;
+      seen_run_[axis] = 1;
+    }
+    stuck = stuck ||
+            (config_.transfer.stuck_count != 0 && seen_run_[axis] >= config_.transfer.stuck_count);
+  }
+  return stuck;
+}
 
 std::int32_t SimAds131Device::code_from_nT(double nT, double nT_per_volt, std::uint8_t gain_code,
                                            bool* clipped) noexcept {
@@ -64,10 +89,19 @@ std::int32_t SimAds131Device::code_from_nT(double nT, double nT_per_volt, std::u
 
 void SimAds131Device::convert(const SimSample& s, std::uint64_t t_us) noexcept {
   ++injected_.conversions;
+  const SimAds131Faults& fa = config_.faults;
+  if (draw(reset_rng_, fa.reset_probability)) {
+    reset_registers();
+    ++injected_.resets;
+  }
   const bool dropout = !s.m_nT.allFinite();
   // Draw the saturation decision for every conversion so the stream does not depend on dropouts.
-  const bool saturate = draw(sat_rng_, config_.faults.saturation_probability);
+  const bool saturate = draw(sat_rng_, fa.saturation_probability);
   const std::uint64_t sat_pick = sat_rng_.next();
+  const bool stuck = in_window(s.t_s, fa.stuck_start_s, fa.stuck_length_s);
+  const std::uint8_t stuck_ch = config_.transfer.channel_of_axis[fa.stuck_axis % 3u] & 3u;
+  const std::int32_t held = codes_[stuck_ch];
+  if (stuck) ++injected_.stuck_conversions;
   if (dropout) {
     drdy_bits_ = 0;  // no new data: the codes of the previous conversion stay in the registers
     ++injected_.not_fresh;
@@ -76,19 +110,21 @@ void SimAds131Device::convert(const SimSample& s, std::uint64_t t_us) noexcept {
     for (std::size_t axis = 0; axis < 3; ++axis) {
       const std::uint8_t ch = config_.transfer.channel_of_axis[axis] & 3u;
       bool clip = false;
-      codes_[ch] =
-          code_from_nT(s.m_nT[static_cast<Eigen::Index>(axis)], config_.transfer.nT_per_volt[axis],
-                       config_.transfer.gain_code[ch], &clip);
+      // The PGA gain the device has (GAIN1), not the configured one: they differ after a reset.
+      const auto gain_code = static_cast<std::uint8_t>((gain1_ >> (4u * ch)) & 7u);
+      codes_[ch] = code_from_nT(s.m_nT[static_cast<Eigen::Index>(axis)],
+                                config_.transfer.nT_per_volt[axis], gain_code, &clip);
       any_clip = any_clip || clip;
     }
     if (any_clip) ++injected_.range_clipped;
-    if (saturate) {
-      const std::uint8_t ch =
-          config_.transfer.channel_of_axis[static_cast<std::size_t>(sat_pick % 3)] & 3u;
-      codes_[ch] =
+    const std::uint8_t sat_ch =
+        config_.transfer.channel_of_axis[static_cast<std::size_t>(sat_pick % 3)] & 3u;
+    if (saturate && !(stuck && sat_ch == stuck_ch)) {  // a stuck channel stays stuck
+      codes_[sat_ch] =
           (sat_pick & 8u) != 0 ? ads131::kCodePositiveFullScale : ads131::kCodeNegativeFullScale;
       ++injected_.saturated;
     }
+    if (stuck) codes_[stuck_ch] = held;
     drdy_bits_ = ads131::kStatusDrdyMask;
   }
   if (edge_count_ == kEdgeQueue) {  // the host did not keep up: the oldest edge is lost
@@ -116,6 +152,7 @@ hal::Status SimAds131Device::transfer(std::span<const std::uint8_t> tx,
     return hal::Status::kInvalidArgument;
   }
   ++injected_.frames;
+  const std::uint16_t cmd = ads131::decode_word16(tx.data());
   // Output frame: the response to the PREVIOUS command plus the latest conversion.
   std::uint16_t response = pending_response_;
   if (pending_is_status_) {
@@ -125,10 +162,10 @@ hal::Status SimAds131Device::transfer(std::span<const std::uint8_t> tx,
   const bool data_frame = pending_is_status_;
   ads131::Frame out{};
   ads131::encode_response_frame(response, codes_, out);
-  if (response == ads131::kResetResponse)
-    reset_flag_ = false;  // the host has seen the reset acknowledge
-  if (data_frame) {
-    drdy_bits_ = 0;  // reading the data clears the DRDY bits until the next conversion
+  if (data_frame) drdy_bits_ = 0;  // reading the data clears the DRDY bits until the next one
+  // The host reads data with NULL; the data in a frame that carries a command (RESET and WREG
+  // while initialising) are not decoded, so faults and counts apply to NULL frames only.
+  if (data_frame && cmd == ads131::kCmdNull) {
     if (draw(crc_rng_, config_.faults.crc_error_probability)) {
       const std::size_t byte = static_cast<std::size_t>(below(crc_rng_, ads131::kFrameBytes - 3));
       const auto flip = static_cast<std::uint8_t>(1u + below(crc_rng_, 255));
@@ -142,25 +179,30 @@ hal::Status SimAds131Device::transfer(std::span<const std::uint8_t> tx,
                      c == ads131::kCodeNegativeFullScale;
       }
       if (full_scale) ++injected_.saturated_frames;
+      if ((response & ads131::kStatusReset) != 0) ++injected_.reset_frames;
+      if (stuck_in(codes_)) ++injected_.stuck_frames;
     }
   }
   const std::size_t n = rx.size() < out.size() ? rx.size() : out.size();
   for (std::size_t i = 0; i < rx.size(); ++i)
     rx[i] = i < n ? out[i] : std::uint8_t{0};
 
-  // Decode the command of this frame; its response goes into the next frame.
-  const std::uint16_t cmd = ads131::decode_word16(tx.data());
+  // The command of this frame; its response goes into the next frame.
   pending_is_status_ = false;
   if (cmd == ads131::kCmdReset) {
-    reset_flag_ = true;
-    gain1_ = 0;
-    drdy_bits_ = 0;
+    reset_registers();
+    seen_code_.fill(0);  // the driver's init() restarts its stuck detector
+    seen_run_.fill(0);
+    pending_is_status_ = false;
     pending_response_ = ads131::kResetResponse;
   } else if ((cmd & 0xE000u) == 0x6000u) {  // WREG
     const auto address = static_cast<std::uint8_t>((cmd >> 7) & 0x3Fu);
     const auto count = static_cast<std::uint8_t>((cmd & 0x7Fu) + 1u);
-    if (address == ads131::kRegGain1 && tx.size() >= 2 * ads131::kWordBytes)
-      gain1_ = ads131::decode_word16(tx.data() + ads131::kWordBytes);
+    if (tx.size() >= 2 * ads131::kWordBytes) {
+      const std::uint16_t value = ads131::decode_word16(tx.data() + ads131::kWordBytes);
+      if (address == ads131::kRegGain1) gain1_ = value;
+      if (address == ads131::kRegMode && (value & ads131::kModeReset) == 0) reset_flag_ = false;
+    }
     pending_response_ = ads131::wreg_response(address, count);
   } else {
     if (cmd != ads131::kCmdNull)
@@ -314,7 +356,8 @@ void SimSbgIns::emit_epoch(std::uint64_t k, const HostTimeMap& time) noexcept {
   const bool duplicate = draw(duplicate_rng_, fa.duplicate_probability);
   const std::uint64_t pick = duplicate_rng_.next();
   const bool repeat_epoch = duplicate && (pick & 1u) != 0;
-  const std::size_t twice = duplicate && !repeat_epoch ? (pick >> 1) % n : n;
+  const std::size_t twice =
+      duplicate && !repeat_epoch ? static_cast<std::size_t>((pick >> 1) % n) : n;
 
   const bool time_lost = slots[time_slot].corrupted;
   const bool attitude_lost = slots[attitude_slot].corrupted;

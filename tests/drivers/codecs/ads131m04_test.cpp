@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <deque>
+#include <vector>
 
 #include "magvec/drivers/ads131_fluxgate.hpp"
 #include "magvec/drivers/crc.hpp"
@@ -130,6 +131,7 @@ TEST(Ads131FrameDecoder, SaturationCrcStatusAndStuckDetection) {
   ASSERT_EQ(dec.decode(f, 0, s), hal::Status::kOk);
   EXPECT_TRUE(s.flags & hal::kMagDeviceReset);
   EXPECT_TRUE(s.flags & hal::kMagNotFresh);
+  EXPECT_EQ(dec.counters().device_resets, 1u);
 
   // Stuck: the same code 5 times on axis y while x changes.
   for (int i = 0; i < 5; ++i) {
@@ -154,7 +156,11 @@ class FakeAdc final : public hal::SpiBus, public hal::DataReadyLine {
       return hal::Status::kBusError;
     }
     Frame out{};
-    encode_response_frame(next_response, codes, out);
+    // STATUS shows MODE.RESET (set by a reset, cleared by the host).
+    const std::uint16_t response = next_response == status
+                                       ? static_cast<std::uint16_t>(status | (mode & kModeReset))
+                                       : next_response;
+    encode_response_frame(response, codes, out);
     if (corrupt_next) {
       out[4] ^= 0x10;
       corrupt_next = false;
@@ -162,11 +168,14 @@ class FakeAdc final : public hal::SpiBus, public hal::DataReadyLine {
     for (std::size_t i = 0; i < kFrameBytes; ++i)
       rx[i] = out[i];
     const std::uint16_t cmd = decode_word16(tx.data());
+    commands.push_back(cmd);
     if (cmd == kCmdReset) {
-      next_response = kResetResponse;
+      device_reset();
+      next_response = mute_reset ? status : kResetResponse;
     } else if ((cmd & 0xE000) == 0x6000) {
       const auto addr = static_cast<std::uint8_t>((cmd >> 7) & 0x3F);
       if (addr == kRegGain1) gain1 = decode_word16(tx.data() + 3);
+      if (addr == kRegMode) mode = decode_word16(tx.data() + 3);
       next_response = static_cast<std::uint16_t>(0x4000 | (cmd & 0x1FFF));
     } else {
       next_response = status;
@@ -180,8 +189,16 @@ class FakeAdc final : public hal::SpiBus, public hal::DataReadyLine {
     return hal::Status::kOk;
   }
   std::uint32_t missed_edges() const noexcept override { return 0; }
+  // Registers back to their defaults (the RESET command, or a reset the host did not ask for).
+  void device_reset() {
+    gain1 = 0;
+    mode = kModeResetValue;
+  }
 
-  std::uint16_t status{0x010F};
+  std::uint16_t status{0x010F};  // without MODE.RESET
+  std::uint16_t mode{kModeResetValue};
+  std::vector<std::uint16_t> commands;
+  bool mute_reset{false};  // answer RESET with STATUS instead of the acknowledge
   std::uint16_t next_response{0x0500 | 0x0F};
   std::array<std::int32_t, 4> codes{1000, -2000, 3000, 0};
   std::uint16_t gain1{0};
@@ -224,10 +241,68 @@ TEST(Ads131Fluxgate, InitWritesGainAndReadsSamplesOnFallingEdges) {
     adc.codes[0] = i;
     adc.edges.push_back({4000u + static_cast<std::uint64_t>(i), hal::Edge::kFalling});
   }
+  adc.commands.reserve(adc.commands.size() + 100);
   const std::size_t before = scope.count();  // deque growth above is the test's, not the driver's
   for (int i = 0; i < 100; ++i)
     ASSERT_EQ(drv.read(s, 1000), hal::Status::kOk);
   EXPECT_EQ(scope.count(), before);
+}
+
+// The ADC resets mid-stream (registers back to their defaults, STATUS.RESET set): the sample is
+// flagged and counted, the driver configures the device again in the same read, and the next
+// sample is good. A re-initialisation that fails is retried by the next reads (kNotReady).
+TEST(Ads131Fluxgate, DeviceResetMidStreamIsFlaggedCountedAndReinitialised) {
+  FakeAdc adc;
+  Ads131FluxgateConfig cfg;
+  cfg.gain_code = {1, 1, 1, 0};
+  Ads131Fluxgate drv(adc, adc, cfg);
+  ASSERT_EQ(drv.init(), hal::Status::kOk);
+  EXPECT_EQ(adc.gain1, 0x0111);
+  EXPECT_EQ(adc.mode, 0x0110);  // MODE.RESET cleared, the rest at its default
+  const std::vector<std::uint16_t> init_commands = {
+      kCmdReset, kCmdNull, wreg(kRegGain1, 1), kCmdNull, wreg(kRegMode, 1), kCmdNull};
+  EXPECT_EQ(adc.commands, init_commands);
+  const double nT_per_code = 1.2 / 2 / 8388608.0 * 1e4;  // gain 2
+  hal::MagnetometerSample s;
+  adc.edges.push_back({1000, hal::Edge::kFalling});
+  ASSERT_EQ(drv.read(s, 0), hal::Status::kOk);
+  EXPECT_EQ(s.flags, 0u);
+  EXPECT_DOUBLE_EQ(s.m_nT[0], 1000 * nT_per_code);
+
+  adc.device_reset();
+  adc.commands.clear();
+  adc.edges.push_back({2000, hal::Edge::kFalling});
+  adc.edges.push_back({3000, hal::Edge::kFalling});
+  ASSERT_EQ(drv.read(s, 0), hal::Status::kOk);
+  EXPECT_EQ(s.t_us, 2000u);
+  EXPECT_EQ(s.flags, hal::kMagDeviceReset);  // converted at the default gain: not valid
+  EXPECT_EQ(drv.counters().device_resets, 1u);
+  std::vector<std::uint16_t> reinit = {kCmdNull};  // the data read, then init()
+  reinit.insert(reinit.end(), init_commands.begin(), init_commands.end());
+  EXPECT_EQ(adc.commands, reinit);
+  EXPECT_EQ(adc.gain1, 0x0111);
+  EXPECT_EQ(adc.mode, 0x0110);
+  ASSERT_EQ(drv.read(s, 0), hal::Status::kOk);
+  EXPECT_EQ(s.flags, 0u);
+  EXPECT_DOUBLE_EQ(s.m_nT[0], 1000 * nT_per_code);
+
+  // Another reset, and the device does not acknowledge the RESET command this time.
+  adc.device_reset();
+  adc.mute_reset = true;
+  adc.edges.push_back({4000, hal::Edge::kFalling});
+  adc.edges.push_back({5000, hal::Edge::kFalling});
+  ASSERT_EQ(drv.read(s, 0), hal::Status::kOk);
+  EXPECT_EQ(s.flags, hal::kMagDeviceReset);
+  EXPECT_FALSE(drv.initialised());
+  EXPECT_EQ(drv.read(s, 0), hal::Status::kNotReady);  // tried again, failed again
+  EXPECT_EQ(drv.read(s, 0), hal::Status::kNotReady);
+  adc.mute_reset = false;
+  ASSERT_EQ(drv.read(s, 0), hal::Status::kOk);  // configured again, then the pending conversion
+  EXPECT_EQ(s.t_us, 5000u);
+  EXPECT_EQ(s.flags, 0u);
+  EXPECT_DOUBLE_EQ(s.m_nT[0], 1000 * nT_per_code);
+  EXPECT_EQ(drv.counters().device_resets, 2u);
+  EXPECT_EQ(drv.counters().samples, 5u);
 }
 
 TEST(Ads131Fluxgate, InitFailsOnWrongResetAcknowledge) {

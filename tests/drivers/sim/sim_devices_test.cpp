@@ -142,6 +142,49 @@ TEST(SimAds131Device, SaturationAndDropoutsAreFlaggedAndCounted) {
   EXPECT_EQ(fg.counters().stuck, 0u);
 }
 
+// Device resets mid-stream and a stuck channel, at gain 2 (a reset puts the device back at gain
+// 1): the real driver flags and counts each reset, configures the device again, and every sample
+// it does not flag reads back within half an LSB; the stuck detector flags the stuck window from
+// its 64th equal code on.
+TEST(SimAds131Device, ResetsMidStreamAndAStuckChannelAreFlaggedAndCounted) {
+  Simulator sim(short_survey(4000), 13);  // 20 s at 200 Hz
+  SimRigConfig rc = spi_rig();
+  rc.adc.transfer.gain_code = {1, 1, 1, 0};
+  rc.adc.transfer.nT_per_volt = {2e5, 2e5, 2e5};
+  rc.adc.faults.reset_probability = 0.005;
+  rc.adc.faults.stuck_start_s = 10;
+  rc.adc.faults.stuck_length_s = 2;  // 400 conversions
+  rc.adc.faults.stuck_axis = 1;
+  SimRig rig(sim, rc);
+  drivers::Ads131Fluxgate fg(rig.adc(), rig.adc(), rc.adc.transfer);
+  ASSERT_EQ(fg.init(), hal::Status::kOk);
+  std::uint32_t resets = 0, stuck = 0, good = 0;
+  while (rig.step()) {
+    hal::MagnetometerSample s;
+    ASSERT_EQ(fg.read(s, 0), hal::Status::kOk);
+    resets += (s.flags & hal::kMagDeviceReset) != 0 ? 1u : 0u;
+    stuck += (s.flags & hal::kMagStuck) != 0 ? 1u : 0u;
+    const bool in_window = rig.last().t_s >= 10 && rig.last().t_s < 12;
+    if ((s.flags & hal::kMagInvalidMask) != 0 || in_window) continue;
+    ++good;
+    for (int i = 0; i < 3; ++i)
+      EXPECT_NEAR(s.m_nT[static_cast<std::size_t>(i)], rig.last().m_nT[i], 0.5 * kLsbNt + 1e-9);
+  }
+  const auto& inj = rig.adc().injected();
+  EXPECT_GT(inj.resets, 10u);
+  EXPECT_EQ(resets, inj.resets);
+  EXPECT_EQ(fg.counters().device_resets, inj.resets);
+  EXPECT_EQ(inj.reset_frames, inj.resets);
+  EXPECT_EQ(inj.stuck_conversions, 400u);
+  // A reset in the window restarts the detector: at most 400 - 62 flagged.
+  EXPECT_EQ(fg.counters().stuck, stuck);
+  EXPECT_EQ(inj.stuck_frames, stuck);
+  EXPECT_GT(stuck, 100u);
+  EXPECT_LE(stuck, 400u - (rc.adc.transfer.stuck_count - 2));
+  EXPECT_GT(good, 3500u);
+  EXPECT_TRUE(fg.initialised());
+}
+
 TEST(SimAds131Device, ClockJumpShiftsDrdyTimestamps) {
   Simulator sim(short_survey(400), 3);
   SimRigConfig rc = spi_rig();

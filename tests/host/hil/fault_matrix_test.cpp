@@ -40,7 +40,7 @@ using Session = HilSession<NullCalibrator>;
 
 constexpr std::uint32_t kSamples = 20'000;  // 20 s at 1 kHz, 2000 INS epochs
 constexpr double kRateHz = 1000;
-constexpr std::size_t kCases = 13;  // rows of the matrix (cases())
+constexpr std::size_t kCases = 15;  // rows of the matrix (cases())
 
 class StoreSink final : public hal::RecordSink {
  public:
@@ -66,6 +66,14 @@ struct FaultCase {
   std::set<std::string> moves;  // every counter that differs from the fault-free run
   Touches touches;
   std::string behaviour;
+  // A channel held at one code in [held_start_s, held_start_s + held_length_s) (stuck): records
+  // there that are not flagged carry the held code on that axis, the other axes untouched.
+  std::uint8_t held_axis{0};
+  double held_start_s{0};
+  double held_length_s{0};
+  // A counter that must move by exactly the injected count (one count per injected fault), an
+  // independent check of the ledger, which derives its counts from what the devices delivered.
+  std::string exact_counter{};
 };
 
 struct RunResult {
@@ -73,6 +81,7 @@ struct RunResult {
   std::vector<CounterCheck> checks;
   std::vector<hal::OutputRecord> records;
   std::vector<std::uint32_t> sample_flags;  // simulator flags of each record's sample
+  std::vector<double> sample_t_s;           // simulation time of each record's sample
   std::uint64_t injected{0};
 };
 
@@ -108,10 +117,10 @@ RunResult run_case(const FaultCase* fc, MagLink link) {
   session->loop().set_active(sc.truth, 1);
   EXPECT_EQ(session->init(), hal::Status::kOk);
   FaultLedger ledger(rc, sc.rate_hz, hc);
-  std::map<std::uint64_t, std::uint32_t> flags_by_t;
+  std::map<std::uint64_t, drivers::sim::SimSample> sample_by_t;
   while (session->step()) {
     ledger.observe(session->rig());
-    flags_by_t[session->rig().host_us(session->rig().last().t_s)] = session->rig().last().flags;
+    sample_by_t[session->rig().host_us(session->rig().last().t_s)] = session->rig().last();
   }
   RunResult r;
   r.checks = counter_checks(*session, ledger.expected());
@@ -125,8 +134,9 @@ RunResult run_case(const FaultCase* fc, MagLink link) {
   r.counters["att.ignored"] = session->attitude_counters().ignored;
   r.records = std::move(sink.records);
   for (const hal::OutputRecord& rec : r.records) {
-    const auto it = flags_by_t.find(rec.t_us);
-    r.sample_flags.push_back(it == flags_by_t.end() ? 0u : it->second);
+    const auto it = sample_by_t.find(rec.t_us);
+    r.sample_flags.push_back(it == sample_by_t.end() ? 0u : it->second.flags);
+    r.sample_t_s.push_back(it == sample_by_t.end() ? -1.0 : it->second.t_s);
   }
   if (fc != nullptr) r.injected = fc->injected(*session, ledger.expected());
   return r;
@@ -171,6 +181,40 @@ std::vector<FaultCase> cases() {
        {"mag.saturated", "loop.device_errors"},
        Touches::kMagnetometer,
        "record flagged kOutDeviceError + kOutDropout, values NaN"});
+  v.push_back({"ADC channel stuck (x repeats its code 0.5 s)",
+               "stuck=5:0.5",
+               MagLink::kSpi,
+               [](ScenarioConfig&, SimRigConfig& rc) {
+                 rc.adc.faults.stuck_start_s = 5;
+                 rc.adc.faults.stuck_length_s = 0.5;
+               },
+               [](Session& s, const ExpectedCounts&) {
+                 return std::uint64_t{s.rig().adc().injected().stuck_conversions};
+               },
+               {"mag.stuck", "loop.device_errors"},
+               Touches::kMagnetometer,
+               "from the 64th equal code on (stuck_count; the last good conversion is the run's "
+               "first) flagged kOutDeviceError + kOutDropout, values NaN; the 62 records before "
+               "cannot be told from a steady field and carry the held code on x",
+               0,
+               5,
+               0.5});
+  v.push_back({"ADC reset mid-stream",
+               "adc-reset=2e-3",
+               MagLink::kSpi,
+               [](ScenarioConfig&, SimRigConfig& rc) { rc.adc.faults.reset_probability = 2e-3; },
+               [](Session& s, const ExpectedCounts&) {
+                 return std::uint64_t{s.rig().adc().injected().resets};
+               },
+               {"mag.device_resets", "loop.device_errors"},
+               Touches::kMagnetometer,
+               "the sample with STATUS.RESET flagged kOutDeviceError + kOutDropout, values NaN "
+               "(converted at the default gain); the driver re-initialises the ADC (RESET, GAIN1, "
+               "MODE.RESET cleared) in the same read: the next conversion is good",
+               0,
+               0,
+               0,
+               "mag.device_resets"});
   v.push_back({"fluxgate dropout (ADC not fresh)",
                "dropout=2e-3",
                MagLink::kSpi,
@@ -239,7 +283,11 @@ std::vector<FaultCase> cases() {
        {"att.duplicates"},
        Touches::kNothing,
        "dropped by the SBG decoder (a frame identical to the previous one; an epoch whose "
-       "INS time was sampled already): every record bit-identical"});
+       "INS time was sampled already): every record bit-identical",
+       0,
+       0,
+       0,
+       "att.duplicates"});
   v.push_back(
       {"INS outage (no CAN frames)",
        "ins-gap=8:1",
@@ -356,14 +404,37 @@ TEST_P(FaultMatrix, CountedExactlyNothingElseMovesOutputsRight) {
     EXPECT_TRUE(c.ok()) << c.counter << " (" << c.fault << "): counted " << c.counted
                         << ", expected " << c.expected;
   EXPECT_EQ(moved(base, r), fc.moves);
+  if (!fc.exact_counter.empty()) {
+    EXPECT_EQ(r.counters.at(fc.exact_counter) - base.counters.at(fc.exact_counter), r.injected)
+        << fc.exact_counter;
+  }
 
   // Outputs.
   std::map<std::uint64_t, const hal::OutputRecord*> base_by_t;
   for (const hal::OutputRecord& b : base.records)
     base_by_t[b.t_us] = &b;
   std::uint64_t dropouts = 0, device_errors = 0, spikes = 0, spikes_flagged = 0, untouched = 0;
+  std::uint64_t held = 0;
+  double held_nT = 0;
   for (std::size_t i = 0; i < r.records.size(); ++i) {
     const hal::OutputRecord& rec = r.records[i];
+    const double t_s = r.sample_t_s[i];
+    if (fc.held_length_s > 0 && t_s >= fc.held_start_s &&
+        t_s < fc.held_start_s + fc.held_length_s &&
+        (rec.flags & (core::kOutDropout | core::kOutDeviceError)) == 0) {
+      // Not yet detected: the held code on its axis, the other axes as without the fault.
+      const auto it = base_by_t.find(rec.t_us);
+      ASSERT_NE(it, base_by_t.end());
+      if (held == 0) held_nT = rec.raw_nT[fc.held_axis];
+      EXPECT_EQ(rec.raw_nT[fc.held_axis], held_nT) << "not the held code at t_us " << rec.t_us;
+      for (std::size_t k = 0; k < 3; ++k) {
+        if (k != fc.held_axis) {
+          EXPECT_EQ(rec.raw_nT[k], it->second->raw_nT[k]);
+        }
+      }
+      ++held;
+      continue;
+    }
     if ((rec.flags & (core::kOutDropout | core::kOutDeviceError)) != 0) {
       // A dropout or a device error (then also kOutDropout) has no output values.
       ++((rec.flags & core::kOutDeviceError) != 0 ? device_errors : dropouts);
@@ -401,6 +472,12 @@ TEST_P(FaultMatrix, CountedExactlyNothingElseMovesOutputsRight) {
   EXPECT_EQ(dropouts, r.counters.at("loop.dropouts"));
   EXPECT_EQ(device_errors, r.counters.at("loop.device_errors"));
   EXPECT_GT(untouched, r.records.size() / 2);
+  if (fc.held_length_s > 0) {
+    // The run starts with the last good conversion: stuck_count - 2 stuck ones pass unflagged.
+    const std::uint32_t stuck_count = drivers::Ads131FluxgateConfig{}.stuck_count;
+    EXPECT_EQ(held, stuck_count - 2);
+    EXPECT_EQ(r.counters.at("mag.stuck"), r.injected - held);
+  }
 }
 
 INSTANTIATE_TEST_SUITE_P(EveryFault, FaultMatrix, ::testing::Range<std::size_t>(0, kCases),

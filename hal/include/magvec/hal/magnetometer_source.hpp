@@ -36,6 +36,7 @@ struct MagCounters {
   std::uint32_t garbage_bytes{0};  // bytes skipped while resynchronising
   std::uint32_t saturated{0};      // samples flagged kMagSaturated
   std::uint32_t stuck{0};          // samples flagged kMagStuck
+  std::uint32_t device_resets{0};  // samples flagged kMagDeviceReset (the driver re-initialised)
   std::uint32_t timeouts{0};       // expected sample did not arrive in time
   std::uint32_t bus_errors{0};     // transport failures
 };

@@ -4,6 +4,12 @@
 // k_axis[nT/V], with k_axis the fluxgate electronics' transfer coefficient (e.g. 10 uT/V = 1e4
 // nT/V). Health checks per sample: output CRC, WLENGTH, device RESET bit, DRDY bits of the used
 // channels, saturation (code at +/- full scale), stuck channel (the same code N times in a row).
+// A device reset mid-stream (brown-out, a glitch on SYNC/RESET) puts every register back to its
+// default: the gains are lost and the codes no longer mean what the transfer says. init() clears
+// MODE.RESET, so STATUS.RESET in a data frame means exactly that: the sample is flagged
+// kMagDeviceReset (an invalid sample, counted in device_resets) and read() re-initialises the
+// device before returning it. A failed re-initialisation is retried by every following read(),
+// which returns kNotReady until it succeeds.
 #pragma once
 
 #include <array>
@@ -53,12 +59,14 @@ class Ads131Fluxgate final : public hal::MagnetometerSource {
                  const Ads131FluxgateConfig& config) noexcept
       : spi_(spi), drdy_(drdy), decoder_(config) {}
 
-  // RESET, check the reset acknowledge (FF24h), write GAIN1, check the WREG acknowledge.
-  // kNotReady if the device does not answer as expected, kBusError on an SPI failure.
+  // RESET, check the reset acknowledge (FF24h), write GAIN1 and MODE (RESET bit cleared), check
+  // each WREG acknowledge. kNotReady if the device does not answer as expected, kBusError on an
+  // SPI failure.
   hal::Status init() noexcept;
 
   // Waits for a falling DRDY edge (up to timeout_us), clocks one NULL frame and decodes it.
   // The sample time is the DRDY edge time (the conversion instant, not the SPI read time).
+  // A sample flagged kMagDeviceReset is returned after the device was re-initialised.
   hal::Status read(hal::MagnetometerSample& out, std::uint32_t timeout_us) noexcept override;
   const hal::MagCounters& counters() const noexcept override { return decoder_.counters(); }
   bool initialised() const noexcept { return initialised_; }
@@ -66,11 +74,14 @@ class Ads131Fluxgate final : public hal::MagnetometerSource {
  private:
   hal::Status exchange(std::uint16_t command, std::span<const std::uint16_t> data,
                        ads131::Response& response, bool& crc_ok) noexcept;
+  // WREG of one register, then a NULL that must return its acknowledge.
+  hal::Status write_register(std::uint8_t address, std::uint16_t value) noexcept;
 
   hal::SpiBus& spi_;
   hal::DataReadyLine& drdy_;
   Ads131FrameDecoder decoder_;
   bool initialised_{false};
+  bool reinit_pending_{false};  // a device reset was seen and re-initialising it failed
 };
 
 }  // namespace magvec::drivers

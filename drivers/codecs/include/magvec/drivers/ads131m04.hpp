@@ -68,6 +68,12 @@ inline constexpr std::uint16_t kStatusWlength24 = 0x0100;
 inline constexpr std::uint16_t kStatusDrdyMask = 0x000F;
 inline constexpr std::uint16_t kStatusResetValue = 0x0500;
 
+// MODE register: 10 RESET (set by every reset, power-on included; STATUS.RESET shows it until
+// the host writes it 0: how a later, unexpected reset becomes visible), 9:8 WLENGTH, 4 TIMEOUT.
+// Reset value 0510h.
+inline constexpr std::uint16_t kModeReset = 1u << 10;
+inline constexpr std::uint16_t kModeResetValue = 0x0510;
+
 inline constexpr std::int32_t kCodePositiveFullScale = 0x7FFFFF;
 inline constexpr std::int32_t kCodeNegativeFullScale = -0x800000;
 inline constexpr double kVref = 1.2;

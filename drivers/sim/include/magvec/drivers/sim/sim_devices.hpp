@@ -12,7 +12,11 @@
 // every injected fault is counted in the device's `injected()` so tests can compare with the
 // counters of the real driver):
 //   ADC: output-frame byte corruption (-> driver crc_errors), forced saturation of one channel
-//        (-> driver saturated), simulator dropouts (NaN).
+//        (-> driver saturated), simulator dropouts (NaN), a stuck channel (one axis repeats the
+//        code it had for a time window: the driver's stuck detector), device resets mid-stream
+//        (every register back to its default, STATUS.RESET set until MODE.RESET is written 0:
+//        the driver flags the sample and re-initialises). The conversion uses the gain in the
+//        device's GAIN1 register, so a reset the host ignored would show in the values.
 //        DECISION on dropouts: the ADC keeps converting and DRDY keeps toggling (it is the
 //        fluxgate electronics, not the ADC, that drops out), but the conversion is not new: the
 //        STATUS DRDY bits of all channels are clear and the channel words repeat the previous
@@ -77,6 +81,11 @@ struct HostTimeMap {
 struct SimAds131Faults {
   double crc_error_probability{0};   // per data frame: one byte of the output frame corrupted
   double saturation_probability{0};  // per conversion: one channel forced to +/- full scale
+  double reset_probability{0};       // per conversion: the device resets just before it
+  // The channel of stuck_axis repeats its last code for the conversions in [start, start + len).
+  double stuck_start_s{std::numeric_limits<double>::infinity()};
+  double stuck_length_s{0};
+  std::uint8_t stuck_axis{0};
 };
 
 struct SimAds131Config {
@@ -87,15 +96,22 @@ struct SimAds131Config {
 };
 
 struct SimAds131Injected {
-  std::uint32_t conversions{0};       // DRDY edges queued
-  std::uint32_t not_fresh{0};         // conversions from a simulator dropout (DRDY bits clear)
-  std::uint32_t crc_corrupted{0};     // output frames with a corrupted byte
-  std::uint32_t saturated{0};         // conversions with a forced full-scale channel
-  std::uint32_t saturated_frames{0};  // intact data frames carrying a full-scale code of a used
-                                      // channel (what the driver must count as saturated)
-  std::uint32_t range_clipped{0};     // conversions clipped because the field exceeded the range
-  std::uint32_t frames{0};            // SPI transfers answered
-  std::uint32_t bad_commands{0};      // transfers with an unknown command or a wrong size
+  std::uint32_t conversions{0};        // DRDY edges queued
+  std::uint32_t not_fresh{0};          // conversions from a simulator dropout (DRDY bits clear)
+  std::uint32_t crc_corrupted{0};      // output frames with a corrupted byte
+  std::uint32_t saturated{0};          // conversions with a forced full-scale channel
+  std::uint32_t saturated_frames{0};   // intact data frames (as reset_frames) carrying a full-scale
+                                       // code of a used channel (the driver's saturated)
+  std::uint32_t resets{0};             // device resets injected
+  std::uint32_t stuck_conversions{0};  // conversions in the stuck window
+  // What the driver must see in the data frames it reads (NULL command, CRC intact): frames with
+  // STATUS.RESET (-> device_resets), frames a used channel of which has had one code for
+  // transfer.stuck_count or more such frames since the last RESET command (-> stuck).
+  std::uint32_t reset_frames{0};
+  std::uint32_t stuck_frames{0};
+  std::uint32_t range_clipped{0};  // conversions clipped because the field exceeded the range
+  std::uint32_t frames{0};         // SPI transfers answered
+  std::uint32_t bad_commands{0};   // transfers with an unknown command or a wrong size
 };
 
 class SimAds131Device final : public hal::SpiBus, public hal::DataReadyLine {
@@ -126,14 +142,22 @@ class SimAds131Device final : public hal::SpiBus, public hal::DataReadyLine {
   std::uint16_t gain1() const noexcept { return gain1_; }
 
  private:
+  // Back to the register defaults (the RESET command or the injected fault).
+  void reset_registers() noexcept;
+  // The driver's stuck detector on a data frame it decodes.
+  bool stuck_in(const std::array<std::int32_t, ads131::kChannels>& codes) noexcept;
+
   SimAds131Config config_;
   Xoshiro256 crc_rng_;
   Xoshiro256 sat_rng_;
+  Xoshiro256 reset_rng_;
   SimAds131Injected injected_{};
+  std::array<std::int32_t, 3> seen_code_{};  // the stuck detector: last code and run per axis
+  std::array<std::uint32_t, 3> seen_run_{};
   std::array<std::int32_t, ads131::kChannels> codes_{};
   std::uint16_t drdy_bits_{0};
   std::uint16_t pending_response_{0};  // response word of the next frame
-  bool reset_flag_{true};              // STATUS.RESET until the reset acknowledge was sent
+  bool reset_flag_{true};              // MODE.RESET (shown in STATUS) until written 0
   bool pending_is_status_{true};
   std::uint16_t gain1_{0};
   std::array<hal::EdgeEvent, kEdgeQueue> edges_{};

@@ -29,9 +29,12 @@ struct ExpectedCounts {
   std::uint64_t mag_rejected{0};   // frames/lines the driver rejects (CRC, checksum): read errors
   std::uint64_t mag_not_fresh{0};  // delivered samples of a simulator dropout (SPI)
   std::uint64_t mag_saturated{0};  // delivered samples with a full-scale code
-  std::uint64_t mag_device_errors{0};  // of those, not dropouts (a dropout is never an error)
-  std::uint64_t mag_missing{0};        // samples missing from the delivered sequence
-  std::uint64_t mag_time_jumps{0};     // steps of the delivered sequence that are clock jumps
+  std::uint64_t mag_stuck{0};      // delivered samples the stuck detector flags
+  std::uint64_t mag_device_resets{0};  // delivered samples reporting a device reset
+  // Saturated, stuck or reset samples that are not dropouts (a dropout is never an error).
+  std::uint64_t mag_device_errors{0};
+  std::uint64_t mag_missing{0};     // samples missing from the delivered sequence
+  std::uint64_t mag_time_jumps{0};  // steps of the delivered sequence that are clock jumps
   std::uint64_t garbage_bytes{0};
   std::uint64_t att_delivered{0};  // INS epochs the decoder turns into a sample
   std::uint64_t att_invalid{0};    // of those, with attitude invalid
@@ -82,11 +85,17 @@ class FaultLedger {
       delivered = !rejected;
       if (rejected) ++e_.mag_rejected;
       const bool not_fresh = a.not_fresh != adc_.not_fresh;
+      // Counted by the sim on the intact frames the driver decodes only.
       const bool saturated = a.saturated_frames != adc_.saturated_frames;
-      screenable = !not_fresh && !saturated;
+      const bool stuck = a.stuck_frames != adc_.stuck_frames;
+      const bool reset = a.reset_frames != adc_.reset_frames;
+      const bool invalid = saturated || stuck || reset;
+      screenable = !not_fresh && !invalid;
       if (delivered && not_fresh) ++e_.mag_not_fresh;
-      if (saturated) ++e_.mag_saturated;  // counted by the sim on intact frames only
-      if (saturated && !not_fresh) ++e_.mag_device_errors;
+      if (saturated) ++e_.mag_saturated;
+      if (stuck) ++e_.mag_stuck;
+      if (reset) ++e_.mag_device_resets;
+      if (invalid && !not_fresh) ++e_.mag_device_errors;
       adc_ = a;
     } else {
       const drivers::sim::SimSerialInjected& s = rig.serial().injected();
@@ -263,13 +272,15 @@ std::vector<CounterCheck> counter_checks(Session& session, const ExpectedCounts&
   add("mag_not_fresh", "simulator dropout (ADC DRDY bits clear)", c.mag_not_fresh, e.mag_not_fresh);
   add("loop.dropouts", "simulator dropout (NaN record, kOutDropout)", h.dropouts, e.mag_not_fresh);
   add("mag.saturated", "full-scale code in a delivered frame", mc.saturated, e.mag_saturated);
-  add("loop.device_errors", "saturated samples (kOutDeviceError)", h.device_errors,
+  add("mag.stuck", "ADC channel repeating one code (stuck detector)", mc.stuck, e.mag_stuck);
+  add("mag.device_resets", "ADC reset mid-stream (STATUS.RESET, re-initialised)", mc.device_resets,
+      e.mag_device_resets);
+  add("loop.device_errors", "saturated, stuck or reset samples (kOutDeviceError)", h.device_errors,
       e.mag_device_errors);
   add("mag.garbage_bytes", "garbage bytes before a serial line", mc.garbage_bytes, e.garbage_bytes);
   add("mag_missing", "samples absent from the delivered sequence", c.mag_missing, e.mag_missing);
   add("mag_time_jumps", "clock jump (magnetometer stamps)", c.mag_time_jumps, e.mag_time_jumps);
   add("mag.malformed", "(no fault)", mc.malformed, 0);
-  add("mag.stuck", "(no fault)", mc.stuck, 0);
   add("mag.overflows", "(no fault)", mc.overflows, 0);
   add("mag.timeouts", "(no fault)", mc.timeouts, 0);
   add("mag.bus_errors", "(no fault)", mc.bus_errors, 0);

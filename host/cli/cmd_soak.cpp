@@ -49,6 +49,7 @@ struct SoakOptions {
   double rate_hz = 1000;
   std::uint64_t seed = 1;
   std::string faults = "default";
+  std::string link = "spi";  // spi: ADS131M04 frames; serial: ASCII fluxgate lines
   double interval_s = 3600;
   std::string json;
 };
@@ -58,10 +59,14 @@ using Session = hil::HilSession<hil::NullCalibrator>;
 // Realistic rates for a day on a survey platform: an ADC CRC error about every 100 s, a fluxgate
 // dropout as often, a saturated conversion every 17 min, a spike every 100 s, a truncated CAN
 // frame every ~20 s; one 2-s INS outage, one 10-s attitude-invalid window and one backwards clock
-// step (NTP) of 1 s at a quarter, half and three quarters of the run.
-std::string default_faults(double duration_s) {
+// step (NTP) of 1 s at a quarter, half and three quarters of the run. Over the serial link the
+// ADC faults give way to the line's: garbage before a line about every 10 s, a wrong checksum
+// about every 100 s.
+std::string default_faults(double duration_s, bool serial) {
   std::ostringstream os;
-  os << std::setprecision(10) << "crc=1e-5,dropout=1e-5,saturation=1e-6,spike=1e-5,ins-corrupt=1e-5"
+  os << std::setprecision(10)
+     << (serial ? "garbage=1e-4,bad-checksum=1e-5" : "crc=1e-5,saturation=1e-6")
+     << ",dropout=1e-5,spike=1e-5,ins-corrupt=1e-5"
      << ",ins-gap=" << 0.25 * duration_s << ":2"
      << ",ins-invalid=" << 0.5 * duration_s << ":10"
      << ",clock-jump=" << 0.75 * duration_s << ":-1";
@@ -263,13 +268,14 @@ void run(const SoakOptions& o) {
   sc.rate_hz = o.rate_hz;
   sc.num_samples = static_cast<std::uint32_t>(samples_d);
   drivers::sim::SimRigConfig rc;
-  rc.link = drivers::sim::MagLink::kSpi;
+  const bool serial = o.link == "serial";
+  rc.link = serial ? drivers::sim::MagLink::kSerial : drivers::sim::MagLink::kSpi;
   // Fluxgate electronics 100 uT/V into the ADC at gain 1, as `magvec run`.
   rc.adc.transfer.nT_per_volt = {1e5, 1e5, 1e5};
   rc.adc.seed = o.seed ^ 0xA1;
   rc.serial.seed = o.seed ^ 0xB2;
   rc.ins.seed = o.seed ^ 0xC3;
-  const std::string faults = o.faults == "default" ? default_faults(duration_s)
+  const std::string faults = o.faults == "default" ? default_faults(duration_s, serial)
                              : o.faults == "none"  ? std::string()
                                                    : o.faults;
   apply_faults(faults, &sc, &rc);
@@ -303,8 +309,8 @@ void run(const SoakOptions& o) {
   const auto per_interval = static_cast<std::uint64_t>(std::llround(o.interval_s * o.rate_hz));
   std::vector<std::int64_t> rss(intervals, -1);
   std::cout << "magvec soak: " << o.hours << " h at " << o.rate_hz << " Hz = " << total
-            << " samples, seed " << o.seed << ", faults " << (faults.empty() ? "none" : faults)
-            << "\n"
+            << " samples, " << o.link << " link, seed " << o.seed << ", faults "
+            << (faults.empty() ? "none" : faults) << "\n"
             << std::flush;
 
   const double wall0 = wall_s();
@@ -540,6 +546,9 @@ void register_soak(CLI::App& app) {
   sub->add_option(
          "--faults", opt->faults,
          std::string("'default' (realistic rates, see the summary), 'none', or ") + kFaultsHelp)
+      ->capture_default_str();
+  sub->add_option("--link", opt->link, "Magnetometer link (the default faults follow it)")
+      ->check(CLI::IsMember({"spi", "serial"}))
       ->capture_default_str();
   sub->add_option("--interval-s", opt->interval_s,
                   "Length of a reporting interval (drift and memory are judged per interval)")

@@ -467,6 +467,9 @@ TEST(SensorLoop, SigmaEnuFromTheHeldOutVectorScatterAndTheAttitudeNoise) {
   EXPECT_EQ(loop.process(feed.next(truth_model(), &r), &r).sigma_enu_nT, 40.0);
   loop.set_active(truth_model(), 6, false, 0.5, 40.0);  // not aligned: h_n is not E/N/U
   EXPECT_TRUE(std::isnan(loop.process(feed.next(truth_model(), &r), &r).sigma_enu_nT));
+  // Without its figure (e.g. a `magvec calibrate` file): not known, never sigma_F alone.
+  loop.set_active(truth_model(), 7, true, 0.5);
+  EXPECT_TRUE(std::isnan(loop.process(feed.next(truth_model(), &r), &r).sigma_enu_nT));
 }
 
 }  // namespace

@@ -194,7 +194,10 @@ class SensorLoop {
     active_aligned_ = aligned;
     // fmax ignores a NaN operand: the known one of the two, NaN only when neither is known.
     active_sigma_f_ = std::fmax(sigma_f_nT, config_.noise_nT);
-    active_sigma_enu_ = aligned ? std::fmax(sigma_enu_nT, active_sigma_f_) : kNaN;
+    // Without its own figure an installed calibration's E/N/U 1-sigma is not known (sigma_F alone
+    // would leave out the attitude noise, F sigma_att, which usually dominates).
+    active_sigma_enu_ =
+        aligned && std::isfinite(sigma_enu_nT) ? std::fmax(sigma_enu_nT, active_sigma_f_) : kNaN;
   }
   bool active_aligned() const noexcept { return active_aligned_ && cal_id_ != 0; }
   // The 1-sigma of |h| in the records: the held-out intensity RMS of the applied calibration

@@ -2,6 +2,7 @@
 #include "magvec/host/daemon/config.hpp"
 
 #include "magvec/host/daemon/default_config_text.hpp"
+#include "magvec/host/hil/fault_spec.hpp"
 
 #include <toml++/toml.h>
 #include <cmath>
@@ -366,6 +367,14 @@ Config parse_config(const std::string& text, const std::string& source) {
   sim.integer("seed", &c.sim.seed, 0, std::numeric_limits<std::int64_t>::max());
   sim.integer("samples_per_attitude", &c.sim.samples_per_attitude, 1, 1'000'000);
   sim.integer("wake_period_us", &c.sim.wake_period_us, 0, 1'000'000);
+  sim.str("faults", &c.sim.faults);
+  try {  // checked here, so a bad item is a configuration error and not a failure at start
+    drivers::sim::ScenarioConfig sc;
+    drivers::sim::SimRigConfig rc;
+    hil::apply_faults(c.sim.faults, &sc, &rc);
+  } catch (const hil::FaultSpecError& e) {
+    sim.fail("faults", e.what());
+  }
   sim.check_unknown();
 
   top.check_unknown();

@@ -4,6 +4,7 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <exception>
 #include <utility>
 
 #include "magvec/drivers/ads131_fluxgate.hpp"
@@ -67,6 +68,7 @@ class SimDevices final : public Devices {
     ++steps_;
     Adapter a{h};
     front_.poll(a);
+    if (a.error) std::rethrow_exception(a.error);
     return true;
   }
   const hal::MagCounters& mag_counters() const override { return front_.mag_counters(); }
@@ -79,11 +81,30 @@ class SimDevices final : public Devices {
   }
 
  private:
+  // SimFrontEnd::poll is noexcept: an exception of the handler (the daemon's exits, e.g. the
+  // error streak's DaemonError) would terminate the process. It is kept, the events after it are
+  // dropped, and poll() rethrows it.
   struct Adapter {
     EventHandler& h;
-    void on_attitude(const hal::AttitudeSample& a) { h.on_attitude(a); }
-    void on_magnetometer(const hal::MagnetometerSample& s, double f) { h.on_magnetometer(s, f); }
-    void on_read_error(hal::Status s) { h.on_read_error(s); }
+    std::exception_ptr error{};
+    template <typename F>
+    void guarded(F&& f) noexcept {
+      if (error) return;
+      try {
+        f();
+      } catch (...) {
+        error = std::current_exception();
+      }
+    }
+    void on_attitude(const hal::AttitudeSample& a) noexcept {
+      guarded([&] { h.on_attitude(a); });
+    }
+    void on_magnetometer(const hal::MagnetometerSample& s, double f) noexcept {
+      guarded([&] { h.on_magnetometer(s, f); });
+    }
+    void on_read_error(hal::Status s) noexcept {
+      guarded([&] { h.on_read_error(s); });
+    }
   };
 
   drivers::sim::Simulator sim_;

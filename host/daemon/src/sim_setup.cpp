@@ -4,6 +4,8 @@
 #include <cmath>
 #include <limits>
 
+#include "magvec/host/hil/fault_spec.hpp"
+
 namespace magvec::host::daemon {
 
 drivers::sim::ScenarioConfig sim_scenario(const Config& c) {
@@ -18,6 +20,8 @@ drivers::sim::ScenarioConfig sim_scenario(const Config& c) {
     sc.samples_per_attitude = c.sim.samples_per_attitude;
   }
   sc.rate_hz = rate;
+  drivers::sim::SimRigConfig unused;
+  hil::apply_faults(c.sim.faults, &sc, &unused);  // valid: parse_config checked it
   return sc;
 }
 
@@ -32,6 +36,8 @@ drivers::sim::SimRigConfig sim_rig_config(const Config& c) {
   rc.ins.rate_hz = c.ins.rate_hz;
   rc.ins.ids = c.ins.ids;
   rc.ins.can_latency_us = c.ins.latency_comp_us;
+  drivers::sim::ScenarioConfig unused;
+  hil::apply_faults(c.sim.faults, &unused, &rc);
   return rc;
 }
 

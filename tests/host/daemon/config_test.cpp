@@ -1,6 +1,7 @@
 // magvecd's TOML configuration (host/daemon/config.hpp): numbers that have no exact double and
 // text toml++ must never see (invalid UTF-8, non-ASCII outside comments) are configuration errors
-// naming the file, the key or the line and column; lcm.raw_batch and its channel are checked.
+// naming the file, the key or the line and column; lcm.raw_batch and its channel and sim.faults
+// are checked.
 #include "magvec/host/daemon/config.hpp"
 
 #include <gtest/gtest.h>
@@ -129,6 +130,19 @@ TEST(DaemonConfigSim, WakePeriodIsBounded) {
             "cfg.toml: sim.wake_period_us: out of range [0, 1000000]");
   EXPECT_EQ(error_of("[sim]\nwake_period_us = 1.5\n"),
             "cfg.toml: sim.wake_period_us: expected an integer");
+}
+
+// sim.faults takes `magvec run --faults` (one parser: host/hil/fault_spec.hpp); a bad item is a
+// configuration error naming the key, never a failure when the rig starts.
+TEST(DaemonConfigSim, FaultsUseTheRunSyntaxAndAreCheckedAtLoad) {
+  EXPECT_EQ(parse_config("", "cfg.toml").sim.faults, "");
+  EXPECT_EQ(parse_config("[sim]\nfaults = \"crc=1,ins-gap=5:1\"\n", "cfg.toml").sim.faults,
+            "crc=1,ins-gap=5:1");
+  EXPECT_EQ(error_of("[sim]\nfaults = \"bogus=1\"\n"),
+            "cfg.toml: sim.faults: unknown fault 'bogus'");
+  EXPECT_EQ(error_of("[sim]\nfaults = \"crc=2\"\n"),
+            "cfg.toml: sim.faults: crc: probability must be in [0, 1]");
+  EXPECT_EQ(error_of("[sim]\nfaults = 1\n"), "cfg.toml: sim.faults: expected a string");
 }
 
 // The batch has its own channel: a reader decodes a channel as one type.

@@ -92,6 +92,8 @@ struct SimConfig {
   // data-ready driven ADC). P > 0: one wake-up every P us that delivers every conversion due by
   // then (a device read in blocks: FIFO, serial burst). Same samples, same order, same outputs.
   std::uint32_t wake_period_us{0};
+  // Injected faults, the syntax of `magvec run --faults` (host/hil/fault_spec.hpp); empty: none.
+  std::string faults{};
 };
 
 struct DaemonSection {

@@ -1,7 +1,7 @@
 // What `magvecd --sim` builds from the configuration: the simulated scenario (li2023 random
 // attitudes running until stopped, or the survey pattern) at the configured magnetometer rate,
-// and the SimRig (ADC transfer, INS rate/IDs/latency, seeds as `magvec run`). Shared with the
-// tests so they drive exactly the daemon's rig.
+// and the SimRig (ADC transfer, INS rate/IDs/latency, seeds as `magvec run`), both with the
+// configured faults (sim.faults). Shared with the tests so they drive exactly the daemon's rig.
 #pragma once
 
 #include "magvec/drivers/sim/sim_devices.hpp"

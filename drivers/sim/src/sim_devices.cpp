@@ -111,7 +111,8 @@ void SimAds131Device::convert(const SimSample& s, std::uint64_t t_us) noexcept {
       const std::uint8_t ch = config_.transfer.channel_of_axis[axis] & 3u;
       bool clip = false;
       // The PGA gain the device has (GAIN1), not the configured one: they differ after a reset.
-      const auto gain_code = static_cast<std::uint8_t>((gain1_ >> (4u * ch)) & 7u);
+      const auto gain_code =
+          static_cast<std::uint8_t>((static_cast<unsigned>(gain1_) >> (4u * ch)) & 7u);
       codes_[ch] = code_from_nT(s.m_nT[static_cast<Eigen::Index>(axis)],
                                 config_.transfer.nT_per_volt[axis], gain_code, &clip);
       any_clip = any_clip || clip;

@@ -167,6 +167,30 @@ std::string to_json_text(const CalibrationFile& cal) {
                  {"inclination_deg", cal.sine->inclination_rad / kRad}};
   }
   if (cal.h_n_nT) j["h_n_nT"] = to_array(*cal.h_n_nT);
+  if (cal.reference) {
+    const ReferenceInfo& r = *cal.reference;
+    json ref = {{"source", r.source}};
+    if (std::isfinite(r.f_nT)) ref["F_nT"] = r.f_nT;
+    if (std::isfinite(r.sigma_f_nT)) ref["sigma_F_nT"] = r.sigma_f_nT;
+    if (r.model) {
+      const ModelReference& m = *r.model;
+      ref["model"] = {{"name", m.name},
+                      {"lat_deg", m.lat_deg},
+                      {"lon_deg", m.lon_deg},
+                      {"height_m", m.height_m},
+                      {"date", m.date},
+                      {"decimal_year", m.decimal_year},
+                      {"enu_nT", to_array(m.enu_nT)},
+                      {"sigma_enu_nT", to_array(m.sigma_enu_nT)},
+                      {"F_nT", m.f_nT},
+                      {"sigma_F_nT", m.sigma_f_nT},
+                      {"declination_deg", m.declination_deg},
+                      {"sigma_declination_deg", m.sigma_declination_deg},
+                      {"inclination_deg", m.inclination_deg},
+                      {"sigma_inclination_deg", m.sigma_inclination_deg}};
+    }
+    j["reference"] = ref;
+  }
   j["time_offset_s"] = cal.time_offset_s;
   if (cal.time_offset_sigma_s) j["time_offset_sigma_s"] = *cal.time_offset_sigma_s;
   {
@@ -247,6 +271,42 @@ CalibrationFile from_json_checked(const json& j, const std::string& source) {
   if (const json* h = member(j, "h_n_nT")) {
     const std::vector<double> v = numbers(*h, 3, source, "h_n_nT");
     cal.h_n_nT = core::Vec3<double>(v[0], v[1], v[2]);
+  }
+  if (const json* rj = object_member(j, "reference", source, "reference")) {
+    ReferenceInfo r;
+    r.source = text_or(*rj, "source", source, "reference.source");
+    if (r.source != "measured" && r.source != "model" && r.source != "given" && r.source != "data")
+      fail(source, "field 'reference.source' must be measured, model, given or data");
+    r.f_nT = number_or(*rj, "F_nT", r.f_nT, source, "reference.F_nT");
+    r.sigma_f_nT = number_or(*rj, "sigma_F_nT", r.sigma_f_nT, source, "reference.sigma_F_nT");
+    if (const json* mj = object_member(*rj, "model", source, "reference.model")) {
+      ModelReference m;
+      const auto num = [&](const char* key) {
+        return number(field(*mj, key, source, "reference.model."), source,
+                      std::string("reference.model.") + key);
+      };
+      const auto vec = [&](const char* key) {
+        const std::vector<double> v = numbers(field(*mj, key, source, "reference.model."), 3,
+                                              source, std::string("reference.model.") + key);
+        return core::Vec3<double>(v[0], v[1], v[2]);
+      };
+      m.name = text_or(*mj, "name", source, "reference.model.name");
+      m.date = text_or(*mj, "date", source, "reference.model.date");
+      m.lat_deg = num("lat_deg");
+      m.lon_deg = num("lon_deg");
+      m.height_m = num("height_m");
+      m.decimal_year = num("decimal_year");
+      m.enu_nT = vec("enu_nT");
+      m.sigma_enu_nT = vec("sigma_enu_nT");
+      m.f_nT = num("F_nT");
+      m.sigma_f_nT = num("sigma_F_nT");
+      m.declination_deg = num("declination_deg");
+      m.sigma_declination_deg = num("sigma_declination_deg");
+      m.inclination_deg = num("inclination_deg");
+      m.sigma_inclination_deg = num("sigma_inclination_deg");
+      r.model = m;
+    }
+    cal.reference = r;
   }
   if (const json* t = member(j, "time_offset_s")) {
     cal.time_offset_s = number(*t, source, "time_offset_s");

@@ -69,6 +69,29 @@ struct OutputQuality {
   double sigma_enu_nT = std::numeric_limits<double>::quiet_NaN();  // 1-sigma per E/N/U axis
 };
 
+// The geomagnetic model's field at the survey site (magvec calibrate --site/--date).
+struct ModelReference {
+  std::string name;                            // e.g. "WMM2025"
+  double lat_deg{0}, lon_deg{0}, height_m{0};  // geodetic, height above the WGS84 ellipsoid
+  std::string date;                            // YYYY-MM-DD
+  double decimal_year{0};
+  core::Vec3<double> enu_nT = core::Vec3<double>::Zero();
+  core::Vec3<double> sigma_enu_nT = core::Vec3<double>::Zero();  // the model's stated 1-sigma
+  double f_nT{0}, sigma_f_nT{0};
+  double declination_deg{0}, sigma_declination_deg{0};
+  double inclination_deg{0}, sigma_inclination_deg{0};
+};
+
+// Where the reference total field came from (JSON "reference"; absent in older files).
+struct ReferenceInfo {
+  // "measured" (the file's F_nT column), "model" (--site/--date), "given" (--field-nT) or
+  // "data" (the median |m|: relative scale only).
+  std::string source;
+  double f_nT = std::numeric_limits<double>::quiet_NaN();        // F for rows without one
+  double sigma_f_nT = std::numeric_limits<double>::quiet_NaN();  // its stated 1-sigma, if known
+  std::optional<ModelReference> model;  // also present as a check when the F was measured
+};
+
 struct CalibrationFile {
   // False when the method refused before it had any solution (nothing to write, not even with
   // --force-write). Not stored in the file: a written file always holds a solution.
@@ -83,6 +106,7 @@ struct CalibrationFile {
   NoiseFigures noise;
   std::optional<OutputQuality> output;
   std::optional<core::Vec3<double>> h_n_nT;
+  std::optional<ReferenceInfo> reference;
   std::optional<SineResult> sine;
   // 1-sigma of the paper-form parameters, by name (e.g. "ks", "O_deg", "Kof_nT", "Rm_deg").
   std::map<std::string, std::vector<double>> sigma;

@@ -7,7 +7,9 @@
 //   sine      turntable sine fitting from an XY and an XZ sweep (docs/equations.md E-Sine)
 //   ekf       the 12-state scalar EKF of Ge et al. 2017 (E-Ge)
 // Noise figures, the magnetometer-INS time offset and (without an F column) the field are taken
-// from the data unless given; cal.json records what was used.
+// from the data unless given; cal.json records what was used. --site/--date take the reference
+// field of a recording without F from the WMM2025 model (host/geomag); a measured F_nT column wins
+// over the model unless --model-f replaces it (the model then only checks the measured F).
 // The estimators run through the host/calibration runners (shared with the daemon and reports);
 // this file parses options and prints the human summary. Exit status: 0 ok, 2 bad input (the
 // message names file, line and column), 3 calibration refused (verdict not ok). cal.json is written
@@ -28,6 +30,7 @@
 #include "calibration/ekf_runner.hpp"
 #include "calibration/sine_runner.hpp"
 #include "commands.hpp"
+#include "magvec/host/geomag/reference_field.hpp"
 #include "magvec/host/io/csv.hpp"
 #include "magvec/version.hpp"
 #include "stats.hpp"
@@ -55,6 +58,9 @@ struct CalibrateOptions {
   bool paper_settings = false;
   bool float32 = false;
   bool force_write = false;
+  std::string site;      // --site LAT,LON,ALT
+  std::string date;      // --date YYYY-MM-DD
+  bool model_f = false;  // --model-f: the model's F replaces a measured F_nT column
 };
 
 // "v +- s" with the given decimals.
@@ -151,6 +157,7 @@ std::string names_or_none(std::uint32_t bits) {
 CalibrationFile run_batch_method(const CalibrateOptions& o, core::BatchMethod method) {
   io::CsvReaderOptions ropt;
   if (std::isfinite(o.field_nT)) ropt.f_nT = o.field_nT;
+  ropt.f_replaces_column = o.model_f;
   ropt.require_time = false;  // only the time-offset estimate uses t_s
   io::CsvReader reader(o.in_path, ropt);
   const bool need_att = method != core::BatchMethod::kEllipsoidOnly;
@@ -273,6 +280,7 @@ CalibrationFile run_batch_method(const CalibrateOptions& o, core::BatchMethod me
 CalibrationFile run_sine_method(const CalibrateOptions& o) {
   io::CsvReaderOptions ropt;
   if (std::isfinite(o.field_nT)) ropt.f_nT = o.field_nT;
+  ropt.f_replaces_column = o.model_f;
   io::CsvReader xy(o.in_path, ropt);
   io::CsvReader xz(o.sweep_xz, ropt);
   SineRunOptions so;
@@ -314,6 +322,7 @@ CalibrationFile run_sine_method(const CalibrateOptions& o) {
 CalibrationFile run_ekf_method(const CalibrateOptions& o) {
   io::CsvReaderOptions ropt;
   if (std::isfinite(o.field_nT)) ropt.f_nT = o.field_nT;
+  ropt.f_replaces_column = o.model_f;
   {
     io::CsvReader probe(o.in_path, ropt);
     if (!probe.has_f() && !std::isfinite(o.field_nT)) {
@@ -382,7 +391,123 @@ CalibrationFile run_ekf_method(const CalibrateOptions& o) {
   return run.cal;
 }
 
-void run(const CalibrateOptions& o) {
+// The model's field at --site/--date, or nothing; option errors exit 2 with the option named.
+std::optional<geomag::ReferenceField> model_reference(const CalibrateOptions& o,
+                                                      geomag::Site* site) {
+  if (o.site.empty() && o.date.empty()) {
+    if (o.model_f) throw CommandExit(2, "--model-f needs --site and --date");
+    return std::nullopt;
+  }
+  if (o.site.empty() || o.date.empty())
+    throw CommandExit(2, "--site and --date go together (the model field depends on both)");
+  if (std::isfinite(o.field_nT))
+    throw CommandExit(2, "--field-nT and --site/--date both give the reference field: give one");
+  try {
+    *site = geomag::parse_site(o.site);
+  } catch (const geomag::GeomagError& e) {
+    throw CommandExit(2, std::string("--site: ") + e.what());
+  }
+  geomag::Date date;
+  try {
+    date = geomag::parse_date(o.date);
+  } catch (const geomag::GeomagError& e) {
+    throw CommandExit(2, std::string("--date: ") + e.what());
+  }
+  try {
+    return geomag::MagneticModel::wmm2025().field(*site, date);
+  } catch (const geomag::GeomagError& e) {
+    throw CommandExit(2, std::string("--site/--date: ") + e.what());
+  }
+}
+
+ModelReference to_model_reference(const geomag::ReferenceField& f, const geomag::Site& site,
+                                  const std::string& date) {
+  ModelReference m;
+  m.name = f.model;
+  m.lat_deg = site.lat_deg;
+  m.lon_deg = site.lon_deg;
+  m.height_m = site.height_m;
+  m.date = date;
+  m.decimal_year = f.decimal_year;
+  m.enu_nT = f.enu_nT;
+  m.sigma_enu_nT = f.sigma.enu_nT;
+  m.f_nT = f.total_nT;
+  m.sigma_f_nT = f.sigma.total_nT;
+  m.declination_deg = f.declination_deg;
+  m.sigma_declination_deg = f.sigma.declination_deg;
+  m.inclination_deg = f.inclination_deg;
+  m.sigma_inclination_deg = f.sigma.inclination_deg;
+  return m;
+}
+
+// Prints the reference the calibration used and, with a model, checks the fitted field vector
+// (and a measured F) against it in units of the model's stated 1-sigma; the figures go to
+// quality.extra. A departure beyond ~3 sigma points at the site, the date, the INS heading or a
+// local anomaly; it is reported, not a refusal (the model's error is not the calibration's).
+void report_reference(CalibrationFile* cal, bool has_f_column, bool model_f, double field_nT,
+                      const std::optional<geomag::ReferenceField>& model, const geomag::Site& site,
+                      const std::string& date) {
+  ReferenceInfo ref;
+  const bool measured = has_f_column && !model_f;
+  ref.source = measured ? "measured" : model ? "model" : std::isfinite(field_nT) ? "given" : "data";
+  if (model) {
+    ref.model = to_model_reference(*model, site, date);
+    if (!measured) {
+      ref.f_nT = model->total_nT;
+      ref.sigma_f_nT = model->sigma.total_nT;
+    }
+    std::cout << "  reference field: " << model->model << " at " << fixed(site.lat_deg, 5) << ", "
+              << fixed(site.lon_deg, 5) << ", " << fixed(site.height_m, 1) << " m on " << date
+              << ": E/N/U " << vec3(model->enu_nT, 1) << " nT +- " << vec3(model->sigma.enu_nT, 0)
+              << ", F " << pm(model->total_nT, model->sigma.total_nT, 1) << " nT, D "
+              << pm(model->declination_deg, model->sigma.declination_deg, 2) << " deg, I "
+              << pm(model->inclination_deg, model->sigma.inclination_deg, 2) << " deg (1-sigma "
+              << "of the model's error model)\n";
+    if (measured) {
+      std::cout << "    the file's measured F_nT is the reference (--model-f to use the model's "
+                   "instead); the model only checks it\n";
+    } else {
+      std::cout << "    "
+                << (has_f_column ? "the model's F replaces the file's F_nT (--model-f)"
+                                 : "no F_nT column: the model's F is the reference")
+                << ", so the absolute scale is known to +- " << fixed(model->sigma.total_nT, 0)
+                << " nT (" << fixed(1e6 * model->sigma.total_nT / model->total_nT, 0) << " ppm)\n";
+    }
+    if (cal->h_n_nT) {
+      const core::Vec3<double> d = *cal->h_n_nT - model->enu_nT;
+      const core::Vec3<double> z = d.cwiseQuotient(model->sigma.enu_nT);
+      const double dec = std::atan2((*cal->h_n_nT)(0), (*cal->h_n_nT)(1)) * kDeg;
+      double d_dec = dec - model->declination_deg;
+      d_dec -= 360.0 * std::round(d_dec / 360.0);
+      std::cout << "    fitted h_n minus model: E/N/U " << vec3(d, 1) << " nT (" << vec3(z, 2)
+                << " sigma), declination " << fixed(d_dec, 3) << " deg ("
+                << fixed(d_dec / model->sigma.declination_deg, 2) << " sigma)\n";
+      cal->quality.extra["h_n_minus_model_E_nT"] = d(0);
+      cal->quality.extra["h_n_minus_model_N_nT"] = d(1);
+      cal->quality.extra["h_n_minus_model_U_nT"] = d(2);
+      cal->quality.extra["h_n_minus_model_declination_deg"] = d_dec;
+      if (z.cwiseAbs().maxCoeff() > 3.0 || std::abs(d_dec) > 3.0 * model->sigma.declination_deg) {
+        std::cout << "    warning: the fitted field departs from the model by more than 3 sigma: "
+                     "check --site/--date, the INS heading, or a local magnetic anomaly\n";
+      }
+    }
+  }
+  cal->reference = ref;
+}
+
+void run(const CalibrateOptions& o_in) {
+  CalibrateOptions o = o_in;
+  geomag::Site site;
+  const std::optional<geomag::ReferenceField> model = model_reference(o, &site);
+  bool has_f_column = false;
+  try {
+    io::CsvReaderOptions popt;
+    popt.require_time = false;
+    has_f_column = io::CsvReader(o.in_path, popt).has_f();
+  } catch (const io::CsvError& e) {
+    throw CommandExit(2, e.what());
+  }
+  if (model && (!has_f_column || o.model_f)) o.field_nT = model->total_nT;
   if (o.method == "sine" && o.sweep_xz.empty())
     throw CommandExit(2, "--method sine needs --sweep-xz (the XZ sweep; --in is the XY sweep)");
   if (o.method == "sine" && o.fixture.empty())
@@ -420,6 +545,7 @@ void run(const CalibrateOptions& o) {
   } catch (const io::CsvError& e) {
     throw CommandExit(2, e.what());
   }
+  report_reference(&cal, has_f_column, o.model_f, o_in.field_nT, model, site, o.date);
   cal.provenance.magvec_version = kVersion;
   cal.provenance.created_utc = utc_now_iso8601();
   print_verdict(cal.quality);
@@ -489,6 +615,14 @@ void register_calibrate(CLI::App& app) {
   cmd->add_option(
       "--trace", opts->trace,
       "ekf: write the state, 1-sigma, NIS and intensity 1-sigma per sample to this CSV");
+  cmd->add_option("--site", opts->site,
+                  "Survey site LAT,LON,ALT (deg, deg, m above the WGS84 ellipsoid): with --date, "
+                  "the reference field of a recording without F_nT comes from the WMM2025 model "
+                  "(F +- 138 nT, 1-sigma)");
+  cmd->add_option("--date", opts->date, "Survey date YYYY-MM-DD (with --site; 2025-2029)");
+  cmd->add_flag("--model-f", opts->model_f,
+                "Use the model's F (--site/--date) even where the file has a measured F_nT "
+                "column (default: the measured F wins, the model only checks it)");
   cmd->add_flag("--force-write", opts->force_write,
                 "Write cal.json even when the verdict is not ok, if the method has a solution "
                 "(the verdict is recorded in it); never writes without one");

@@ -319,7 +319,7 @@ bool CsvReader::next(CsvRecord* out) {
     r.dropout = true;
     r.m_nT.setConstant(kNaN);
   }
-  if (col_f_) {
+  if (col_f_ && !(options_.f_nT && options_.f_replaces_column)) {
     const double f = number(*col_f_);
     if (!std::isnan(f)) r.f_nT = f;
   } else if (options_.f_nT) {

@@ -74,6 +74,8 @@ struct CsvRecord {
 struct CsvReaderOptions {
   // Scalar reference for every row when the file has no F column ("one value by option").
   std::optional<double> f_nT;
+  // true: f_nT replaces the file's F column too (a model reference the user prefers to it).
+  bool f_replaces_column = false;
   // false: a file without t_s is accepted (methods that do not use time); t_s is then NaN.
   bool require_time = true;
 };

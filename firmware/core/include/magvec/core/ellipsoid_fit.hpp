@@ -7,11 +7,12 @@
 // phi = [x^2, y^2, z^2, 2xy, 2xz, 2yz, x, y, z, 1] of the normalised reading x = (m - c) / s
 // (c, s from the first sample or set explicitly). The 10x10 phi block is the classic quadric
 // scatter matrix; the extra column carries the per-sample reference field. O(1) memory, any N.
-// Solve: (1) the homogeneous quadric (smallest eigenvector of the 10x10 block), scaled to the mean
-// F^2; (2) Gauss-Newton on the 9 ellipsoid parameters (G, centre u) of the exact algebraic residual
-// e_i = (x_i - u)^T G (x_i - u) - f_i^2, whose sum of squares is a quadratic form in the
-// accumulator, so a per-sample F is honoured exactly and noise-free data is recovered exactly.
-// Optional geometric refinement (Gauss-Newton on |W(m - o)| - F) over a fixed-capacity SampleStore.
+// Solve: (1) the quadric of least algebraic distance with tr G = 1 (a 9x9 linear least-squares
+// problem in the 10x10 block), scaled to the mean F^2; (2) Gauss-Newton on the 9 ellipsoid
+// parameters (G, centre u) of the exact algebraic residual e_i = (x_i - u)^T G (x_i - u) - f_i^2,
+// whose sum of squares is a quadratic form in the accumulator, so a per-sample F is honoured
+// exactly and noise-free data is recovered exactly. Optional geometric refinement (Gauss-Newton on
+// |W(m - o)| - F) over a fixed-capacity SampleStore.
 #pragma once
 
 #include <Eigen/Cholesky>
@@ -158,32 +159,51 @@ class EllipsoidFit {
     return true;
   }
 
+  // Stage (1) alone (docs/equations.md E-Ell-2): the quadric of least algebraic distance under
+  // tr G = 1, centre and scale, in the normalised coordinates: (x - u)^T G (x - u) = mean(f^2).
+  // kOk, kTooFewSamples, kIllConditioned (data on a plane, a ring, ...) or kNotAnEllipsoid.
+  EllipsoidStatus algebraic_start(Mat3<Scalar>* g, Vec3<Scalar>* u) const noexcept {
+    if (n_ < kMinSamples) return EllipsoidStatus::kTooFewSamples;
+    const Accumulator s = s_.template selfadjointView<Eigen::Upper>();
+    const Mat<Scalar, kCoeffs, kCoeffs> m = s.template topLeftCorner<kCoeffs, kCoeffs>();
+    // q = e_2 + T^T q': G22 = 1 - G00 - G11, the other nine coefficients free. A linear
+    // least-squares problem (no eigen-solver), well posed for any ellipsoid (tr G > 0).
+    Mat<Scalar, kCoeffs - 1, kCoeffs> t = Mat<Scalar, kCoeffs - 1, kCoeffs>::Zero();
+    t(0, 0) = 1;
+    t(0, 2) = -1;
+    t(1, 1) = 1;
+    t(1, 2) = -1;
+    for (int i = 2; i < kCoeffs - 1; ++i)
+      t(i, i + 1) = 1;
+    const Mat<Scalar, kCoeffs - 1, kCoeffs - 1> a = t * m * t.transpose();
+    const Vec<Scalar, kCoeffs - 1> rhs = -(t * m.col(2));
+    const Eigen::LDLT<Mat<Scalar, kCoeffs - 1, kCoeffs - 1>> ldlt(a);
+    if (ldlt.info() != Eigen::Success) return EllipsoidStatus::kIllConditioned;
+    const Vec<Scalar, kCoeffs - 1> qp = ldlt.solve(rhs);
+    if (!qp.allFinite()) return EllipsoidStatus::kIllConditioned;
+    Vec<Scalar, kCoeffs> q = t.transpose() * qp;
+    q(2) += 1;
+    Mat3<Scalar> g0 = detail::sym_from6<Scalar>(q.template head<6>());
+    const Eigen::LLT<Mat3<Scalar>> llt(g0);
+    if (llt.info() != Eigen::Success) return EllipsoidStatus::kNotAnEllipsoid;
+    *u = Scalar(-0.5) * llt.solve(Vec3<Scalar>(q.template segment<3>(6)));
+    const Scalar r2 = u->dot(g0 * *u) - q(9);
+    const Scalar mean_f2 = s(9, 10) / s(9, 9);
+    if (!(r2 > Scalar(0)) || !(mean_f2 > Scalar(0))) return EllipsoidStatus::kNotAnEllipsoid;
+    *g = g0 * (mean_f2 / r2);
+    return g->allFinite() && u->allFinite() ? EllipsoidStatus::kOk
+                                            : EllipsoidStatus::kNotAnEllipsoid;
+  }
+
   EllipsoidSolution<Scalar> solve(int max_iterations = 50) const noexcept {
     EllipsoidSolution<Scalar> out;
     if (n_ < kMinSamples) return out;
     const Accumulator s = s_.template selfadjointView<Eigen::Upper>();
-    // (1) Homogeneous quadric: smallest eigenvector of the 10x10 scatter block.
-    const Mat<Scalar, kCoeffs, kCoeffs> m = s.template topLeftCorner<kCoeffs, kCoeffs>();
-    Vec<Scalar, kCoeffs> evals;
-    Mat<Scalar, kCoeffs, kCoeffs> evecs;
-    if (!symmetric_eigen_jacobi<Scalar, kCoeffs>(m, &evals, &evecs)) {
-      out.status = EllipsoidStatus::kIllConditioned;
-      return out;
-    }
-    Vec<Scalar, kCoeffs> q = evecs.col(0);
-    Mat3<Scalar> g = detail::sym_from6<Scalar>(q.template head<6>());
-    if (g.trace() < Scalar(0)) {
-      q = -q;
-      g = -g;
-    }
-    out.status = EllipsoidStatus::kNotAnEllipsoid;
-    const Eigen::LLT<Mat3<Scalar>> llt(g);
-    if (llt.info() != Eigen::Success) return out;
-    Vec3<Scalar> u = Scalar(-0.5) * llt.solve(Vec3<Scalar>(q.template segment<3>(6)));
-    const Scalar r2 = u.dot(g * u) - q(9);
-    if (!(r2 > Scalar(0))) return out;
-    const Scalar mean_f2 = s(9, 10) / s(9, 9);
-    g *= mean_f2 / r2;
+    // (1) Algebraic start.
+    Mat3<Scalar> g;
+    Vec3<Scalar> u;
+    out.status = algebraic_start(&g, &u);
+    if (out.status != EllipsoidStatus::kOk) return out;
 
     // (2) Gauss-Newton on (G, u) with the exact algebraic residual.
     Vec<Scalar, kParams> p;

@@ -29,9 +29,8 @@
 // a detected divergence. With estimate_noise the estimate is used for weighting, debias and
 // gating; otherwise noise_sigma_nT is used and the estimate is only reported.
 // `EkfConfig::paper()` reproduces the printed x0/P0/Q/R (with gate and divergence detection off) so
-// the paper's setup can be rerun. Note for later deduplication: the algebraic quadric fit in
-// scalar_ekf_detail overlaps with the batch EllipsoidFit module; it is kept here small and
-// self-contained on purpose.
+// the paper's setup can be rerun. The start-up set's algebraic quadric fit is the batch
+// EllipsoidFit's (docs/equations.md E-Ell-2, E-Ell-3), centred on the set's mean reading.
 #pragma once
 
 #include <Eigen/Cholesky>
@@ -41,6 +40,7 @@
 #include <cstdint>
 #include <limits>
 
+#include "magvec/core/ellipsoid_fit.hpp"
 #include "magvec/core/sensor_model.hpp"
 #include "magvec/core/types.hpp"
 
@@ -195,83 +195,6 @@ struct EkfConfig {
     return c;
   }
 };
-
-namespace scalar_ekf_detail {
-
-// Quadric monomials of p (centred, normalised): phi^T theta = (p - b)^T G (p - b) for
-// theta = [G00, G11, G22, G01, G02, G12, (G b)_0..2, b^T G b].
-template <typename Scalar>
-Vec<Scalar, 10> quadric_monomials(const Vec3<Scalar>& p) noexcept {
-  Vec<Scalar, 10> phi;
-  phi << p(0) * p(0), p(1) * p(1), p(2) * p(2), Scalar(2) * p(0) * p(1), Scalar(2) * p(0) * p(2),
-      Scalar(2) * p(1) * p(2), Scalar(-2) * p(0), Scalar(-2) * p(1), Scalar(-2) * p(2), Scalar(1);
-  return phi;
-}
-
-// Small streaming algebraic ellipsoid fit: accumulates S = sum phi phi^T (10x10, O(1) memory) and
-// solves min theta^T S theta subject to tr(G) = 1 (a linear constraint: substitute
-// G22 = 1 - G00 - G11, a 9x9 linear least-squares problem). The quadric (p - b)^T G (p - b) = k is
-// then scaled to the mean reference z = F^2. With a constant reference the problem is homogeneous,
-// so an unconstrained fit of phi^T theta = z would be singular. Returns W as the upper-triangular
-// Cholesky factor (W^T W = G) and b.
-template <typename Scalar>
-class QuadricAccumulator {
- public:
-  void clear() noexcept {
-    s_.setZero();
-    z_sum_ = 0;
-    n_ = 0;
-  }
-  void add(const Vec3<Scalar>& p, Scalar z) noexcept {
-    s_.template selfadjointView<Eigen::Lower>().rankUpdate(quadric_monomials<Scalar>(p));
-    z_sum_ += z;
-    ++n_;
-  }
-  int count() const noexcept { return n_; }
-
-  // W, b in the accumulated (centred) coordinates. False if the quadric is not an ellipsoid.
-  bool solve(Mat3<Scalar>* w, Vec3<Scalar>* b) const noexcept {
-    if (n_ < 10) return false;
-    const Mat<Scalar, 10, 10> full = s_.template selfadjointView<Eigen::Lower>();
-    // theta = t0 + T^T theta' with t0 = e_2 (G22 = 1 - G00 - G11).
-    Mat<Scalar, 9, 10> t = Mat<Scalar, 9, 10>::Zero();
-    t(0, 0) = 1;
-    t(0, 2) = -1;
-    t(1, 1) = 1;
-    t(1, 2) = -1;
-    for (int i = 2; i < 9; ++i)
-      t(i, i + 1) = 1;
-    const Mat<Scalar, 9, 9> a = t * full * t.transpose();
-    const Vec<Scalar, 9> rhs = -(t * full.col(2));
-    const Eigen::LDLT<Mat<Scalar, 9, 9>> ldlt(a);
-    if (ldlt.info() != Eigen::Success) return false;
-    const Vec<Scalar, 9> tp = ldlt.solve(rhs);
-    if (!tp.allFinite()) return false;
-    Vec<Scalar, 10> theta = t.transpose() * tp;
-    theta(2) += 1;
-    Mat3<Scalar> g;
-    g << theta(0), theta(3), theta(4), theta(3), theta(1), theta(5), theta(4), theta(5), theta(2);
-    const Eigen::LLT<Mat3<Scalar>> llt_g(g);
-    if (llt_g.info() != Eigen::Success) return false;
-    const Vec3<Scalar> center = llt_g.solve(theta.template segment<3>(6));
-    // phi^T theta = (p - b)^T G (p - b) - k with k = b^T G b - theta_9.
-    const Scalar k = center.dot(g * center) - theta(9);
-    const Scalar z_mean = z_sum_ / static_cast<Scalar>(n_);
-    if (!(k > 0 && z_mean > 0)) return false;
-    const Eigen::LLT<Mat3<Scalar>> llt(g * (z_mean / k));
-    if (llt.info() != Eigen::Success) return false;
-    *w = llt.matrixU();
-    *b = center;
-    return w->allFinite() && b->allFinite();
-  }
-
- private:
-  Mat<Scalar, 10, 10> s_ = Mat<Scalar, 10, 10>::Zero();
-  Scalar z_sum_{0};
-  int n_ = 0;
-};
-
-}  // namespace scalar_ekf_detail
 
 // Outcome of the last initial-fit try (ScalarEkf::init_report()).
 template <typename Scalar>
@@ -900,15 +823,32 @@ class ScalarEkf {
 
   // ---- initial fit over the start-up set ---------------------------------------------------
   bool algebraic_fit(const Vec3<Scalar>& center) noexcept {
-    scalar_ekf_detail::QuadricAccumulator<Scalar> acc;
-    acc.clear();
+    // Centred on the set's mean and scaled by its mean reference, so that the quadric's
+    // monomials stay well conditioned in float32 however far the offset is from zero.
+    Scalar f_mean{0};
+    int n = 0;
     for (int i = 0; i < n_buf_; ++i) {
-      if (used_(i) > 0) acc.add(buf_m_.col(i) - center, buf_f_(i) * buf_f_(i));
+      if (!(used_(i) > 0)) continue;
+      f_mean += buf_f_(i);
+      ++n;
     }
-    Mat3<Scalar> w;
-    Vec3<Scalar> b;
-    if (!acc.solve(&w, &b)) return false;
-    x_ = flatten_state(w, b + center);
+    if (n == 0) return false;
+    EllipsoidFit<Scalar> fit;
+    fit.set_normalization(Normalization<Scalar>{center, f_mean / static_cast<Scalar>(n)});
+    for (int i = 0; i < n_buf_; ++i) {
+      if (used_(i) > 0) fit.add(buf_m_.col(i), buf_f_(i));
+    }
+    // Its algebraic start only: the exact-model Gauss-Newton follows. G = W^T W is scale-free, so
+    // the normalised fit's G is the one in nT.
+    Mat3<Scalar> g;
+    Vec3<Scalar> u;
+    if (fit.algebraic_start(&g, &u) != EllipsoidStatus::kOk) return false;
+    const Eigen::LLT<Mat3<Scalar>> llt(g);
+    if (llt.info() != Eigen::Success) return false;
+    const Mat3<Scalar> w = llt.matrixU();
+    const Vec3<Scalar> b = fit.normalization().to_nt(u);
+    if (!w.allFinite() || !b.allFinite()) return false;
+    x_ = flatten_state(w, b);
     return true;
   }
 

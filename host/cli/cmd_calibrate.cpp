@@ -497,17 +497,6 @@ void report_reference(CalibrationFile* cal, bool has_f_column, bool model_f, dou
 
 void run(const CalibrateOptions& o_in) {
   CalibrateOptions o = o_in;
-  geomag::Site site;
-  const std::optional<geomag::ReferenceField> model = model_reference(o, &site);
-  bool has_f_column = false;
-  try {
-    io::CsvReaderOptions popt;
-    popt.require_time = false;
-    has_f_column = io::CsvReader(o.in_path, popt).has_f();
-  } catch (const io::CsvError& e) {
-    throw CommandExit(2, e.what());
-  }
-  if (model && (!has_f_column || o.model_f)) o.field_nT = model->total_nT;
   if (o.method == "sine" && o.sweep_xz.empty())
     throw CommandExit(2, "--method sine needs --sweep-xz (the XZ sweep; --in is the XY sweep)");
   if (o.method == "sine" && o.fixture.empty())
@@ -519,8 +508,17 @@ void run(const CalibrateOptions& o_in) {
     throw CommandExit(2,
                       "--paper-settings, --float32, --passes and --trace apply only to "
                       "--method ekf");
+  geomag::Site site;
+  const std::optional<geomag::ReferenceField> model = model_reference(o, &site);
+  bool has_f_column = false;
   CalibrationFile cal;
   try {
+    {
+      io::CsvReaderOptions popt;
+      popt.require_time = false;
+      has_f_column = io::CsvReader(o.in_path, popt).has_f();
+    }
+    if (model && (!has_f_column || o.model_f)) o.field_nT = model->total_nT;
     if (o.method == "sine") {
       cal = run_sine_method(o);
     } else if (o.method == "ekf") {

@@ -1,0 +1,1139 @@
+// Online full-vector calibration filter (docs/equations.md E-VF-A .. E-VF-8): an error-state
+// extended Kalman filter that estimates, from every magnetometer sample with its INS attitude,
+//   W (6: Li structure, the rotation belongs to Rm), offset o (3), misalignment Rm (3, body-frame
+//   small-angle error folded into a quaternion), local field h_n (3, ENU), magnetometer-INS time
+//   offset dt (1) and offset temperature coefficients c (3): o(T) = o + c (T - T0).
+// Measurement (E-VF-2): the geographic residual of the one-step fit (E-OS-1) with the attitude
+// moved back by the time offset (E-TO-1),
+//   r = Exp(-dt [Omega x]) R_bn^T Rm^T W (m - o - c (T - T0)) - h_n,
+// weighted by its covariance from the magnetometer and INS angle noise (E-OS-3), whitened and
+// applied as three scalar updates; a scalar reference F adds the scalar update |h_n| = F (E-VF-4).
+// Jacobians: E-VF-3. Time offset: E-VF-5. Temperature: E-VF-6. Heading rule: E-VF-7 (the rotation
+// about the body z axis is held, its gain exactly zero, until the tilt spread reaches the batch
+// methods' limit). Gating, divergence and resets: E-VF-8.
+// Numerics: P = U D U^T (Bierman scalar update, Agee-Turner for process noise, as scalar_ekf.hpp),
+// fields normalised by a reference magnitude, states held as nominal + error so float32 does not
+// lose updates below the resolution of values of order one (E-VF-A).
+// Start: from a stored calibration with its 1-sigmas, or from the first well-spread samples: the
+// batch calibrator (one-step fit, batch_calibrator.hpp) gives the linearisation point and the
+// filter then replays those samples from a diffuse prior (E-VF-1).
+// Fixed-size, heap-free, noexcept, float and double.
+#pragma once
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+#include <limits>
+#include <type_traits>
+
+#include "magvec/core/batch_calibrator.hpp"
+#include "magvec/core/frames.hpp"
+#include "magvec/core/misalignment.hpp"
+#include "magvec/core/one_step.hpp"
+#include "magvec/core/sensor_model.hpp"
+#include "magvec/core/types.hpp"
+
+namespace magvec::core {
+
+// One magnetometer sample with what the filter needs from the INS and the environment.
+template <typename Scalar>
+struct VfSample {
+  Vec3<Scalar> m_nT = Vec3<Scalar>::Zero();           // raw reading
+  Mat3<Scalar> r_bn = Mat3<Scalar>::Identity();       // INS attitude at the sample's time stamp
+  Vec3<Scalar> omega_n_rad_s = Vec3<Scalar>::Zero();  // rotation rate of R_bn^T, n-frame axes
+  Scalar f_nT = std::numeric_limits<Scalar>::quiet_NaN();  // scalar reference (NaN: none)
+  Scalar temperature_degC = std::numeric_limits<Scalar>::quiet_NaN();  // NaN: none
+  Scalar interval_s = std::numeric_limits<Scalar>::quiet_NaN();        // since the previous sample
+};
+
+// Rotation rate in n-frame axes from a body rate (gyro): Omega = R_bn^T omega_b (E-TO-1).
+template <typename Scalar>
+Vec3<Scalar> rate_n_from_body(const Mat3<Scalar>& r_bn, const Vec3<Scalar>& omega_b) noexcept {
+  return r_bn.transpose() * omega_b;
+}
+// Rotation rate from the attitudes before and after a sample: Log(R_+^T R_-) / (t_+ - t_-).
+template <typename Scalar>
+Vec3<Scalar> rate_n_from_attitudes(const Mat3<Scalar>& r_bn_before, const Mat3<Scalar>& r_bn_after,
+                                   Scalar span_s) noexcept {
+  if (!(span_s > Scalar(0))) return Vec3<Scalar>::Zero();
+  const Eigen::AngleAxis<Scalar> aa(Mat3<Scalar>(r_bn_after.transpose() * r_bn_before));
+  return aa.axis() * (aa.angle() / span_s);
+}
+
+enum class VfStatus : std::uint8_t {
+  kAccepted,             // measurement updates applied
+  kCollecting,           // kept (or skipped) for the start from data
+  kInitialised,          // this sample completed the start; the filter runs
+  kInitFailed,           // a start from data was tried and refused; collecting anew
+  kGated,                // innovation outside the gate: sample rejected, state untouched
+  kFieldReopened,        // consecutive reference rejections: h_n re-opened, then updated
+  kRejectedNonFinite,    // NaN/inf reading or attitude
+  kRejectedNoReference,  // collecting without a scalar reference (the start needs one)
+  kReset,                // divergence detected (last_reset_reason()); collecting for a restart
+};
+
+enum class VfResetReason : std::uint8_t {
+  kNone,
+  kNonFiniteState,         // state or innovation variance became NaN/inf
+  kCovarianceNotPositive,  // a D factor became <= 0
+  kNisTooHigh,             // window mean NIS of the accepted scalar updates above the limit
+  kTooManyGated,           // window fraction of gated samples above the limit
+  kConsecutiveRejections,  // too many vector samples gated in a row
+  kSingularModel,          // det W numerically zero
+  kFieldChange,            // (partial) reference gated in a row: h_n re-opened, rest kept
+};
+
+inline const char* vf_reset_reason_name(VfResetReason r) noexcept {
+  switch (r) {
+    case VfResetReason::kNone:
+      return "none";
+    case VfResetReason::kNonFiniteState:
+      return "non_finite_state";
+    case VfResetReason::kCovarianceNotPositive:
+      return "covariance_not_positive";
+    case VfResetReason::kNisTooHigh:
+      return "nis_too_high";
+    case VfResetReason::kTooManyGated:
+      return "too_many_gated";
+    case VfResetReason::kConsecutiveRejections:
+      return "consecutive_rejections";
+    case VfResetReason::kSingularModel:
+      return "singular_model";
+    case VfResetReason::kFieldChange:
+      return "field_change";
+  }
+  return "unknown";
+}
+
+struct VfCounters {
+  std::uint32_t samples = 0;             // update() calls
+  std::uint32_t updates = 0;             // vector samples applied (live)
+  std::uint32_t reference_updates = 0;   // scalar reference updates applied (live)
+  std::uint32_t gated = 0;               // vector samples rejected by the gate
+  std::uint32_t gated_reference = 0;     // reference updates rejected by the gate
+  std::uint32_t rejected_nonfinite = 0;  // NaN/inf inputs
+  std::uint32_t heading_held = 0;        // vector updates made with the heading state held
+  std::uint32_t resets = 0;              // full restarts after a detected divergence
+  std::uint32_t field_reopens = 0;       // partial resets of h_n (kFieldChange)
+  std::uint32_t fold_rm = 0;             // misalignment error folded into the quaternion
+  std::uint32_t init_attempts = 0;       // starts from data tried
+  std::uint32_t init_failures = 0;       // ... and refused
+};
+
+template <typename Scalar>
+struct VfConfig {
+  // Normalisation magnitude; 0: the first reference field (or the stored h_n).
+  Scalar field_scale_nT{0};
+  // Constant reference for the start from data when samples carry none (0: none).
+  Scalar reference_field_nT{0};
+  Scalar mag_noise_nT = Scalar(0.3);                      // per axis, 1-sigma
+  Scalar attitude_noise_rad = deg_to_rad(Scalar(0.015));  // per INS angle, 1-sigma
+  AttitudeNoiseModel attitude_model = AttitudeNoiseModel::kLiEuler;
+  Scalar reference_sigma_nT = Scalar(0.01);  // noise of the scalar reference
+  // Random-walk process noise (E-VF-1); 0: constant.
+  Scalar offset_q_nT2_per_s{0};             // offset drift
+  Scalar field_q_nT2_per_s{0};              // diurnal variation / site change
+  Scalar sample_interval_s = Scalar(0.01);  // when a sample carries no interval
+  bool estimate_time_offset = true;
+  Scalar time_offset0_s{0};
+  Scalar time_offset_sigma0_s = Scalar(0.05);
+  bool estimate_temperature = true;
+  Scalar temperature_ref_degC = std::numeric_limits<Scalar>::quiet_NaN();  // NaN: first seen
+  Scalar tc_sigma0_nT_per_degC = Scalar(5);
+  // Heading rule (E-VF-7): RMS spread of the body-frame vertical before the rotation about body z
+  // is updated (the acceptance limit of the batch methods).
+  Scalar min_tilt_spread_deg = Scalar(2);
+  // Start from data (E-VF-1).
+  int init_samples = 48;                     // kept samples before the batch fit
+  Scalar init_min_rotation_deg = Scalar(2);  // attitude change between kept samples
+  int init_replay_passes = 12;               // most relinearised replays of the kept samples
+  Scalar prior_w_sigma = Scalar(0.01);       // diffuse prior of the replay (and fallbacks)
+  Scalar prior_o_sigma_nT = Scalar(50);
+  Scalar prior_rm_sigma_rad = deg_to_rad(Scalar(2));
+  Scalar prior_h_n_sigma_nT = Scalar(200);
+  // Misalignment error folded into the quaternion when its norm exceeds this (0: after every
+  // update). float32 defers the fold: a correction below the quaternion's resolution would be lost.
+  Scalar rm_fold_rad = std::is_same_v<Scalar, float> ? Scalar(2e-4) : Scalar(0);
+  // Gating and divergence (E-VF-8).
+  Scalar gate_nis = Scalar(25);  // per scalar update, chi-square 1 dof; <= 0: off
+  bool divergence_detection = true;
+  int nis_window = 100;  // vector samples per window
+  Scalar nis_mean_limit = Scalar(4);
+  Scalar gated_fraction_limit = Scalar(0.5);
+  int max_consecutive_rejections = 50;
+  int field_change_after = 3;  // consecutive gated references before h_n is re-opened
+  Scalar field_reopen_sigma_nT = Scalar(200);
+};
+
+// A stored calibration to start from (E-VF-1). Sigmas that are 0 or NaN take the config's prior.
+template <typename Scalar>
+struct VfStart {
+  static constexpr Scalar kNaN = std::numeric_limits<Scalar>::quiet_NaN();
+  SensorModel<Scalar> model{};
+  LiSigmas<Scalar> sigma{};
+  Vec3<Scalar> h_n_nT = Vec3<Scalar>::Constant(kNaN);  // NaN: from the first sample
+  Vec3<Scalar> h_n_sigma_nT = Vec3<Scalar>::Constant(kNaN);
+  Scalar time_offset_s{0};
+  Scalar time_offset_sigma_s = kNaN;
+  Vec3<Scalar> tc_nT_per_degC = Vec3<Scalar>::Zero();
+  Vec3<Scalar> tc_sigma_nT_per_degC = Vec3<Scalar>::Constant(kNaN);
+  Scalar temperature_ref_degC = kNaN;
+};
+
+// 1-sigmas of the outputs, from the covariance.
+template <typename Scalar>
+struct VfSigmas {
+  Mat3<Scalar> w = Mat3<Scalar>::Zero();         // structural zeros of W stay 0
+  Vec3<Scalar> o_nT = Vec3<Scalar>::Zero();      // offset at the current temperature
+  Vec3<Scalar> o_ref_nT = Vec3<Scalar>::Zero();  // offset at T0
+  Vec3<Scalar> rm_rad = Vec3<Scalar>::Zero();    // small rotations about the body axes
+  Vec3<Scalar> h_n_nT = Vec3<Scalar>::Zero();
+  Scalar dt_s{0};
+  Vec3<Scalar> tc_nT_per_degC = Vec3<Scalar>::Zero();
+};
+
+template <typename Scalar, int kInitCapacity = 64>
+class VectorCalibrationFilter {
+  static_assert(CoreScalar<Scalar>);
+  static_assert(kInitCapacity >= 16, "the start from data needs well over 14 samples");
+
+ public:
+  // State layout (E-VF-A). W entries in Li structure: W = (Ks Ko)^-1 is lower triangular in the
+  // axis order (x, z, y), so W(0,1) = W(0,2) = W(2,1) = 0 and six entries are free.
+  static constexpr int kW0 = 0;   // W(0,0)
+  static constexpr int kW1 = 1;   // W(1,0)
+  static constexpr int kW2 = 2;   // W(1,1)
+  static constexpr int kW3 = 3;   // W(1,2)
+  static constexpr int kW4 = 4;   // W(2,0)
+  static constexpr int kW5 = 5;   // W(2,2)
+  static constexpr int kO0 = 6;   // offset at T0 (normalised), x y z
+  static constexpr int kRm0 = 9;  // misalignment error about body x, y, z (rad)
+  static constexpr int kRmHeading = kRm0 + 2;
+  static constexpr int kHn0 = 12;  // h_n (normalised), E N U
+  static constexpr int kDt = 15;   // time offset (s)
+  static constexpr int kTc0 = 16;  // temperature coefficients (normalised per degC)
+  static constexpr int kStates = 19;
+  static constexpr int kWEntries = 6;
+  static constexpr std::array<int, kWEntries> kWRow = {0, 1, 1, 1, 2, 2};
+  static constexpr std::array<int, kWEntries> kWCol = {0, 0, 1, 2, 0, 2};
+  static_assert(kTc0 + 3 == kStates);
+
+  using StateVec = Vec<Scalar, kStates>;
+  using StateMat = Mat<Scalar, kStates, kStates>;
+  using Config = VfConfig<Scalar>;
+  using Batch = BatchCalibrator<Scalar, static_cast<std::size_t>(kInitCapacity)>;
+
+  explicit VectorCalibrationFilter(const Config& cfg = Config{}) noexcept { configure(cfg); }
+
+  // Replaces the configuration; clears everything (counters included) and collects for a start.
+  void configure(const Config& cfg) noexcept {
+    cfg_ = cfg;
+    cfg_.init_samples = std::clamp(cfg_.init_samples, 16, kInitCapacity);
+    cfg_.init_replay_passes = std::max(cfg_.init_replay_passes, 1);
+    cfg_.nis_window = std::max(cfg_.nis_window, 10);
+    cfg_.field_change_after = std::max(cfg_.field_change_after, 1);
+    counters_ = VfCounters{};
+    last_reset_ = VfResetReason::kNone;
+    scale_ = cfg_.field_scale_nT > Scalar(0) ? cfg_.field_scale_nT : Scalar(0);
+    t0_ = cfg_.temperature_ref_degC;
+    last_t_ = t0_;
+    pending_start_ = false;
+    restart();
+  }
+
+  // Starts from a stored calibration (E-VF-1); the filter runs from the next sample.
+  void start(const VfStart<Scalar>& s) noexcept {
+    restart();
+    stored_ = s;
+    pending_start_ = true;
+    if (std::isfinite(s.temperature_ref_degC)) {
+      t0_ = s.temperature_ref_degC;
+      last_t_ = t0_;
+    }
+    if (!(scale_ > Scalar(0)) && s.h_n_nT.allFinite() && s.h_n_nT.norm() > Scalar(0))
+      scale_ = s.h_n_nT.norm();
+  }
+
+  VfStatus update(const VfSample<Scalar>& in) noexcept {
+    ++counters_.samples;
+    if (!in.m_nT.allFinite() || !in.r_bn.allFinite() || !in.omega_n_rad_s.allFinite()) {
+      ++counters_.rejected_nonfinite;
+      return VfStatus::kRejectedNonFinite;
+    }
+    Scalar f = in.f_nT;
+    if (!(std::isfinite(f) && f > Scalar(0))) f = std::numeric_limits<Scalar>::quiet_NaN();
+    if (!(scale_ > Scalar(0))) {
+      if (std::isfinite(f)) {
+        scale_ = f;
+      } else if (cfg_.reference_field_nT > Scalar(0)) {
+        scale_ = cfg_.reference_field_nT;
+      } else if (pending_start_) {
+        scale_ = (stored_.model.w * (in.m_nT - stored_.model.o)).norm();
+      }
+      if (!(scale_ > Scalar(0))) return VfStatus::kRejectedNoReference;
+    }
+    if (std::isfinite(in.temperature_degC)) {
+      if (!std::isfinite(t0_)) t0_ = in.temperature_degC;
+      last_t_ = in.temperature_degC;
+    }
+    note_tilt(in.r_bn);
+    if (pending_start_) start_stored(in, f);
+    if (!running_) return collect(in, f);
+    Prepared p = prepare(in.m_nT, in.r_bn, in.omega_n_rad_s, f, last_t_);
+    const Scalar dt = std::isfinite(in.interval_s) && in.interval_s >= Scalar(0)
+                          ? in.interval_s
+                          : cfg_.sample_interval_s;
+    add_process_noise(dt);
+    return live_step(p);
+  }
+
+  bool initialised() const noexcept { return running_; }
+  const VfCounters& counters() const noexcept { return counters_; }
+  VfResetReason last_reset_reason() const noexcept { return last_reset_; }
+  const Config& config() const noexcept { return cfg_; }
+  Scalar field_scale_nT() const noexcept { return scale_; }
+  bool heading_held() const noexcept { return held_[kRmHeading]; }
+  Scalar tilt_spread_deg() const noexcept { return rad_to_deg(tilt_spread_rad()); }
+  Scalar last_nis() const noexcept { return last_nis_; }
+  Scalar temperature_ref_degC() const noexcept { return t0_; }
+  int startup_samples() const noexcept { return static_cast<int>(batch_.store().size()); }
+  // Verdict of the last batch fit of a start from data (acceptance.hpp).
+  Verdict last_init_verdict() const noexcept { return init_verdict_; }
+
+  // ---- outputs (interface units) ---------------------------------------------------------------
+  Mat3<Scalar> w() const noexcept {
+    const StateVec v = full();
+    Mat3<Scalar> m = Mat3<Scalar>::Zero();
+    for (int k = 0; k < kWEntries; ++k)
+      m(kWRow[static_cast<std::size_t>(k)], kWCol[static_cast<std::size_t>(k)]) = v(kW0 + k);
+    return m;
+  }
+  Quat<Scalar> rm() const noexcept { return rm_current(); }
+  Vec3<Scalar> offset_ref_nT() const noexcept {
+    return full().template segment<3>(kO0) * scale_or_one();
+  }
+  Vec3<Scalar> temperature_coefficients_nT_per_degC() const noexcept {
+    return full().template segment<3>(kTc0) * scale_or_one();
+  }
+  // Offset at a temperature (NaN: the last one seen).
+  Vec3<Scalar> offset_nT(Scalar t_degC = std::numeric_limits<Scalar>::quiet_NaN()) const noexcept {
+    return offset_ref_nT() + temperature_coefficients_nT_per_degC() * delta_t(t_degC);
+  }
+  Vec3<Scalar> h_n_nT() const noexcept { return full().template segment<3>(kHn0) * scale_or_one(); }
+  Scalar time_offset_s() const noexcept { return full()(kDt); }
+  // The calibration at a temperature (NaN: the last one seen), canonical form.
+  SensorModel<Scalar> model(
+      Scalar t_degC = std::numeric_limits<Scalar>::quiet_NaN()) const noexcept {
+    SensorModel<Scalar> m;
+    m.w = w();
+    m.o = offset_nT(t_degC);
+    m.rm = rm_current();
+    return m;
+  }
+
+  // Covariance in interface units (W 1, o nT, Rm rad about body axes, h_n nT, dt s, c nT/degC).
+  StateMat covariance() const noexcept {
+    const StateMat p = covariance_normalised();
+    const StateVec t = unit_scale();
+    return t.asDiagonal() * p * t.asDiagonal();
+  }
+  VfSigmas<Scalar> sigmas(Scalar t_degC = std::numeric_limits<Scalar>::quiet_NaN()) const noexcept {
+    const StateMat p = covariance();
+    VfSigmas<Scalar> s;
+    auto sd = [&](int k) { return std::sqrt(std::max(p(k, k), Scalar(0))); };
+    for (int k = 0; k < kWEntries; ++k)
+      s.w(kWRow[static_cast<std::size_t>(k)], kWCol[static_cast<std::size_t>(k)]) = sd(kW0 + k);
+    const Scalar dtc = delta_t(t_degC);
+    for (int i = 0; i < 3; ++i) {
+      s.o_ref_nT(i) = sd(kO0 + i);
+      const Scalar v = p(kO0 + i, kO0 + i) + Scalar(2) * dtc * p(kO0 + i, kTc0 + i) +
+                       dtc * dtc * p(kTc0 + i, kTc0 + i);
+      s.o_nT(i) = std::sqrt(std::max(v, Scalar(0)));
+      s.rm_rad(i) = sd(kRm0 + i);
+      s.h_n_nT(i) = sd(kHn0 + i);
+      s.tc_nT_per_degC(i) = sd(kTc0 + i);
+    }
+    s.dt_s = sd(kDt);
+    return s;
+  }
+
+ private:
+  static constexpr Scalar kNaN = std::numeric_limits<Scalar>::quiet_NaN();
+  // Replay of the kept samples: residuals at this mean chi^2 per observation count as settled.
+  static constexpr Scalar kReplaySettled = Scalar(2);
+
+  // A sample in the filter's units.
+  struct Prepared {
+    Vec3<Scalar> m;      // normalised reading
+    Mat3<Scalar> r;      // R_bn
+    Vec3<Scalar> omega;  // rad/s, n frame
+    Scalar f;            // normalised reference (NaN: none)
+    Scalar dtemp;        // T - T0 (0 without temperatures)
+  };
+
+  Scalar scale_or_one() const noexcept { return scale_ > Scalar(0) ? scale_ : Scalar(1); }
+  Scalar delta_t(Scalar t_degC) const noexcept {
+    const Scalar t = std::isfinite(t_degC) ? t_degC : last_t_;
+    return std::isfinite(t) && std::isfinite(t0_) ? t - t0_ : Scalar(0);
+  }
+  StateVec unit_scale() const noexcept {
+    StateVec t = StateVec::Ones();
+    t.template segment<3>(kO0).setConstant(scale_or_one());
+    t.template segment<3>(kHn0).setConstant(scale_or_one());
+    t.template segment<3>(kTc0).setConstant(scale_or_one());
+    return t;
+  }
+  // Nominal + error for the additive states; the misalignment block is the error itself.
+  StateVec full() const noexcept { return nom_ + x_; }
+  Quat<Scalar> rm_current() const noexcept {
+    // Rm = Rm_nom Exp(-[phi x]) (E-VF-A): a body-frame small rotation of the frame.
+    const Vec3<Scalar> phi = x_.template segment<3>(kRm0);
+    const Scalar a = phi.norm();
+    Quat<Scalar> q = rm_nom_;
+    if (a > Scalar(0)) q = rm_nom_ * Quat<Scalar>(Eigen::AngleAxis<Scalar>(-a, phi / a));
+    q.normalize();
+    return q;
+  }
+
+  Prepared prepare(const Vec3<Scalar>& m_nT, const Mat3<Scalar>& r, const Vec3<Scalar>& omega,
+                   Scalar f_nT, Scalar t_degC) const noexcept {
+    Prepared p;
+    p.m = m_nT / scale_;
+    p.r = r;
+    p.omega = omega;
+    p.f = f_nT / scale_;
+    p.dtemp = std::isfinite(t_degC) && std::isfinite(t0_) ? t_degC - t0_ : Scalar(0);
+    return p;
+  }
+
+  // ---- restart and the two starts
+  // ----------------------------------------------------------------
+  void restart() noexcept {
+    running_ = false;
+    batch_.reset();
+    BatchConfig<Scalar> bc;
+    bc.mag_noise_nT = cfg_.mag_noise_nT;
+    bc.attitude_noise_deg = rad_to_deg(cfg_.attitude_noise_rad);
+    bc.attitude_model = cfg_.attitude_model;
+    batch_.set_config(bc);
+    n_kept_ = 0;
+    min_rotation_deg_ = cfg_.init_min_rotation_deg;
+    nom_.setZero();
+    x_.setZero();
+    rm_nom_ = Quat<Scalar>::Identity();
+    u_.setIdentity();
+    d_.setOnes();
+    held_.fill(false);
+    tilt_n_ = 0;
+    tilt_mean_.setZero();
+    tilt_m2_.setZero();
+    tilt_released_ = false;
+    reset_windows();
+  }
+  void reset_windows() noexcept {
+    window_n_ = 0;
+    window_gated_ = 0;
+    window_nis_sum_ = 0;
+    window_nis_n_ = 0;
+    consecutive_rejections_ = 0;
+    consecutive_ref_gated_ = 0;
+  }
+
+  // Nominal state from a model (Li structure), h_n, dt, c (all interface units).
+  void set_nominal(const SensorModel<Scalar>& li_model, const Vec3<Scalar>& h_n_nT, Scalar dt_s,
+                   const Vec3<Scalar>& tc) noexcept {
+    const Scalar s = scale_or_one();
+    nom_.setZero();
+    for (int k = 0; k < kWEntries; ++k)
+      nom_(kW0 + k) =
+          li_model.w(kWRow[static_cast<std::size_t>(k)], kWCol[static_cast<std::size_t>(k)]);
+    nom_.template segment<3>(kO0) = li_model.o / s;
+    nom_.template segment<3>(kHn0) = h_n_nT / s;
+    nom_(kDt) = dt_s;
+    nom_.template segment<3>(kTc0) = tc / s;
+    rm_nom_ = li_model.rm.normalized();
+    x_.setZero();
+  }
+
+  // d W entries / d (ks, O): dW = -W dA W with A = Ks Ko (E-OS-2).
+  static Mat<Scalar, kWEntries, 6> w_jacobian_li(const LiParams<Scalar>& li) noexcept {
+    using std::cos;
+    using std::sin;
+    const Mat3<Scalar> ko = li_ko(li.o_rad);
+    const Mat3<Scalar> w = (li.ks.asDiagonal() * ko).inverse();
+    const Vec3<Scalar>& o = li.o_rad;
+    std::array<Mat3<Scalar>, 6> da;
+    for (int k = 0; k < 3; ++k) {
+      da[static_cast<std::size_t>(k)].setZero();
+      da[static_cast<std::size_t>(k)].row(k) = ko.row(k);
+    }
+    for (std::size_t k = 3; k < 6; ++k)
+      da[k].setZero();
+    da[3].row(2) = li.ks(2) * Vec3<Scalar>(cos(o(0)), 0, -sin(o(0))).transpose();
+    da[4].row(1) =
+        li.ks(1) *
+        Vec3<Scalar>(-sin(o(1)) * sin(o(2)), -sin(o(1)) * cos(o(2)), cos(o(1))).transpose();
+    da[5].row(1) =
+        li.ks(1) * Vec3<Scalar>(cos(o(1)) * cos(o(2)), -cos(o(1)) * sin(o(2)), 0).transpose();
+    Mat<Scalar, kWEntries, 6> j;
+    for (std::size_t c = 0; c < 6; ++c) {
+      const Mat3<Scalar> dw = -w * da[c] * w;
+      for (int k = 0; k < kWEntries; ++k)
+        j(k, static_cast<int>(c)) =
+            dw(kWRow[static_cast<std::size_t>(k)], kWCol[static_cast<std::size_t>(k)]);
+    }
+    return j;
+  }
+
+  static Scalar pick(Scalar given, Scalar fallback) noexcept {
+    return std::isfinite(given) && given > Scalar(0) ? given : fallback;
+  }
+
+  // Prior covariance (normalised) from Li sigmas and the other states' sigmas (interface units).
+  StateMat prior_covariance(const LiParams<Scalar>& li, const LiSigmas<Scalar>& sg,
+                            const Vec3<Scalar>& h_n_sigma_nT, Scalar dt_sigma_s,
+                            const Vec3<Scalar>& tc_sigma) const noexcept {
+    const Scalar s = scale_or_one();
+    StateMat p = StateMat::Zero();
+    Vec<Scalar, 6> v;
+    bool w_given = true;
+    for (int k = 0; k < 3; ++k) {
+      v(k) = sg.ks(k);
+      v(3 + k) = sg.o_rad(k);
+    }
+    for (int k = 0; k < 6; ++k)
+      w_given = w_given && std::isfinite(v(k)) && v(k) > Scalar(0);
+    if (w_given) {
+      const Mat<Scalar, kWEntries, 6> j = w_jacobian_li(li);
+      const Mat<Scalar, kWEntries, 6> jv = j * v.asDiagonal();
+      p.template block<kWEntries, kWEntries>(kW0, kW0) = jv * jv.transpose();
+    } else {
+      for (int k = 0; k < kWEntries; ++k)
+        p(kW0 + k, kW0 + k) = cfg_.prior_w_sigma * cfg_.prior_w_sigma;
+    }
+    // Li angle errors map to body-frame rotations along li_rm_axes_body (E-VF-1).
+    const Mat3<Scalar> axes = li_rm_axes_body(li.rm_rad);
+    Vec3<Scalar> sr;
+    for (int k = 0; k < 3; ++k)
+      sr(k) = pick(sg.rm_rad(k), cfg_.prior_rm_sigma_rad);
+    const Mat3<Scalar> ar = axes * sr.asDiagonal();
+    p.template block<3, 3>(kRm0, kRm0) = ar * ar.transpose();
+    for (int k = 0; k < 3; ++k) {
+      const Scalar so = pick(sg.kof(k), cfg_.prior_o_sigma_nT) / s;
+      p(kO0 + k, kO0 + k) = so * so;
+      const Scalar sh = pick(h_n_sigma_nT(k), cfg_.prior_h_n_sigma_nT) / s;
+      p(kHn0 + k, kHn0 + k) = sh * sh;
+      const Scalar sc = pick(tc_sigma(k), cfg_.tc_sigma0_nT_per_degC) / s;
+      p(kTc0 + k, kTc0 + k) = sc * sc;
+    }
+    const Scalar st = pick(dt_sigma_s, cfg_.time_offset_sigma0_s);
+    p(kDt, kDt) = st * st;
+    return p;
+  }
+
+  // Holds: states not estimated (config) and the heading until the tilt spread suffices.
+  void apply_holds(StateMat* p) noexcept {
+    held_.fill(false);
+    if (!cfg_.estimate_time_offset) held_[kDt] = true;
+    if (!cfg_.estimate_temperature)
+      for (int k = 0; k < 3; ++k)
+        held_[static_cast<std::size_t>(kTc0 + k)] = true;
+    if (!tilt_released_) held_[kRmHeading] = true;
+    // A held state must be uncorrelated so that a zero Jacobian column gives it exactly zero gain
+    // (E-VF-7); removing a state's cross-covariances keeps P positive semi-definite.
+    for (int k = 0; k < kStates; ++k) {
+      if (!held_[static_cast<std::size_t>(k)]) continue;
+      for (int j = 0; j < kStates; ++j) {
+        if (j == k) continue;
+        (*p)(k, j) = Scalar(0);
+        (*p)(j, k) = Scalar(0);
+      }
+    }
+  }
+
+  void start_stored(const VfSample<Scalar>& in, Scalar f_nT) noexcept {
+    pending_start_ = false;
+    SensorModel<Scalar> li_model;
+    LiParams<Scalar> li;
+    if (to_li(stored_.model, &li) != ConversionStatus::kOk) return;  // collect from data instead
+    li_model = from_li(li);
+    Vec3<Scalar> h_n = stored_.h_n_nT;
+    if (!h_n.allFinite()) {
+      // The stored calibration applied to this sample (E-VF-1), magnitude from the reference.
+      const Mat3<Scalar> rmt = li_model.rm_matrix().transpose();
+      h_n = in.r_bn.transpose() * (rmt * (li_model.w * (in.m_nT - li_model.o)));
+      if (std::isfinite(f_nT) && h_n.norm() > Scalar(0)) h_n *= f_nT / h_n.norm();
+    }
+    set_nominal(li_model, h_n, stored_.time_offset_s, stored_.tc_nT_per_degC);
+    StateMat p = prior_covariance(li, stored_.sigma, stored_.h_n_sigma_nT,
+                                  stored_.time_offset_sigma_s, stored_.tc_sigma_nT_per_degC);
+    update_tilt_release();
+    apply_holds(&p);
+    if (!ud_factorise(p)) return;
+    running_ = true;
+    reset_windows();
+  }
+
+  // Motion-decimated collection (E-VF-1); the batch fit when enough samples are kept.
+  VfStatus collect(const VfSample<Scalar>& in, Scalar f_nT) noexcept {
+    Scalar f = f_nT;
+    if (!std::isfinite(f) && cfg_.reference_field_nT > Scalar(0)) f = cfg_.reference_field_nT;
+    if (!std::isfinite(f)) return VfStatus::kRejectedNoReference;
+    if (n_kept_ > 0) {
+      const Mat3<Scalar> last = batch_.store()[static_cast<std::size_t>(n_kept_ - 1)].r_bn();
+      if (rotation_angle_between(last, in.r_bn) < deg_to_rad(min_rotation_deg_))
+        return VfStatus::kCollecting;
+    }
+    if (batch_.add_sample(in.m_nT, f, in.r_bn) != AddStatus::kAccepted)
+      return VfStatus::kCollecting;
+    const std::size_t i = static_cast<std::size_t>(n_kept_);
+    kept_omega_.col(n_kept_) = in.omega_n_rad_s;
+    kept_t_(n_kept_) = last_t_;
+    kept_has_f_[i] = std::isfinite(f_nT);
+    ++n_kept_;
+    if (n_kept_ < cfg_.init_samples) return VfStatus::kCollecting;
+    if (start_from_data()) return VfStatus::kInitialised;
+    ++counters_.init_failures;
+    thin_collection();
+    return VfStatus::kInitFailed;
+  }
+  // After a refused start: keep every other kept sample and double the attitude step, so the set
+  // spans twice the motion when it is full again (a slow platform still reaches enough spread).
+  void thin_collection() noexcept {
+    const int half = n_kept_ / 2;
+    std::array<Vec3<Scalar>, static_cast<std::size_t>(kInitCapacity / 2 + 1)> m;
+    std::array<Mat3<Scalar>, static_cast<std::size_t>(kInitCapacity / 2 + 1)> r;
+    std::array<Scalar, static_cast<std::size_t>(kInitCapacity / 2 + 1)> f;
+    for (int j = 0; j < half; ++j) {
+      const int i = 2 * j + 1;
+      const StoredSample<Scalar>& s = batch_.store()[static_cast<std::size_t>(i)];
+      const std::size_t ju = static_cast<std::size_t>(j);
+      m[ju] = s.raw();
+      r[ju] = s.r_bn();
+      f[ju] = s.f;
+      kept_omega_.col(j) = kept_omega_.col(i);
+      kept_t_(j) = kept_t_(i);
+      kept_has_f_[ju] = kept_has_f_[static_cast<std::size_t>(i)];
+    }
+    batch_.reset();
+    for (int j = 0; j < half; ++j) {
+      const std::size_t ju = static_cast<std::size_t>(j);
+      batch_.add_sample(m[ju], f[ju], r[ju]);
+    }
+    n_kept_ = half;
+    min_rotation_deg_ = std::min(Scalar(2) * min_rotation_deg_, Scalar(45));
+  }
+  void restart_collection() noexcept {
+    min_rotation_deg_ = cfg_.init_min_rotation_deg;
+    batch_.reset();
+    n_kept_ = 0;
+  }
+
+  bool start_from_data() noexcept {
+    ++counters_.init_attempts;
+    update_tilt_release();
+    BatchConfig<Scalar> bc = batch_.config();
+    bc.fix_heading_misalignment = !tilt_released_;
+    bc.fixed_heading_misalignment_deg = Scalar(0);
+    batch_.set_config(bc);
+    const BatchResult<Scalar> res = batch_.solve(BatchMethod::kOneStep);
+    init_verdict_ = res.verdict;
+    // The batch fit knows neither the time offset nor the temperature term: residuals too large
+    // or a fit that did not settle still give a linearisation point; the replay decides (E-VF-1).
+    const bool usable = res.verdict == Verdict::kOk || res.verdict == Verdict::kResidualTooLarge ||
+                        res.verdict == Verdict::kNotConverged;
+    if (!usable || !res.has_model || !res.has_h_n || !res.h_n_nT.allFinite()) return false;
+    const SensorModel<Scalar> li_model = from_li(res.li);
+    if (!li_model.w.allFinite() || !(li_model.w.determinant() > Scalar(0))) return false;
+    set_nominal(li_model, res.h_n_nT, cfg_.time_offset0_s, Vec3<Scalar>::Zero());
+    // Each pass restarts from the diffuse prior at the previous pass's estimate: Gauss-Newton on
+    // the kept samples with the filter's own model (time offset and temperature included). The
+    // noise is scaled up to the residuals at the pass's start, so a linearisation point far off
+    // (the batch fit knows no lag) takes damped steps; the last pass runs at the configured noise.
+    bool final_pass = false;
+    for (int pass = 0; pass < cfg_.init_replay_passes && !final_pass; ++pass) {
+      fold_all();
+      const Scalar chi2_per_obs = replay_chi2_per_observation();
+      if (!std::isfinite(chi2_per_obs)) return false;
+      final_pass = chi2_per_obs <= kReplaySettled || pass + 1 == cfg_.init_replay_passes;
+      noise_factor_ =
+          chi2_per_obs <= kReplaySettled ? Scalar(1) : std::sqrt(std::max(chi2_per_obs, Scalar(1)));
+      if (!replay_pass()) {
+        noise_factor_ = Scalar(1);
+        return false;
+      }
+    }
+    noise_factor_ = Scalar(1);
+    running_ = true;
+    reset_windows();
+    restart_collection();
+    return true;
+  }
+
+  // One replay of the kept samples from the diffuse prior at the current (folded) estimate.
+  bool replay_pass() noexcept {
+    LiParams<Scalar> li_now;
+    if (to_li(model_nominal(), &li_now) != ConversionStatus::kOk) return false;
+    LiSigmas<Scalar> none;
+    none.ks.setConstant(kNaN);
+    none.o_rad.setConstant(kNaN);
+    none.kof.setConstant(kNaN);
+    none.rm_rad.setConstant(kNaN);
+    const Vec3<Scalar> nan3 = Vec3<Scalar>::Constant(kNaN);
+    StateMat p = prior_covariance(li_now, none, nan3, kNaN, nan3);
+    apply_holds(&p);
+    if (!ud_factorise(p)) return false;
+    for (int i = 0; i < n_kept_; ++i) {
+      const StoredSample<Scalar>& s = batch_.store()[static_cast<std::size_t>(i)];
+      if (s.outlier()) continue;
+      const Prepared pr = kept(i);
+      if (std::isfinite(pr.f)) reference_update(pr.f, false);
+      vector_update(pr, false);
+      maybe_fold_rm();
+    }
+    return x_.allFinite() && d_.allFinite() && (d_.array() > Scalar(0)).all();
+  }
+  Prepared kept(int i) const noexcept {
+    const StoredSample<Scalar>& s = batch_.store()[static_cast<std::size_t>(i)];
+    return prepare(s.raw(), s.r_bn(), kept_omega_.col(i),
+                   kept_has_f_[static_cast<std::size_t>(i)] ? s.f : kNaN, kept_t_(i));
+  }
+  // Mean squared whitened residual per scalar observation over the kept samples at the current
+  // estimate and the configured noise (1 at the optimum of consistent data).
+  Scalar replay_chi2_per_observation() noexcept {
+    noise_factor_ = Scalar(1);
+    Scalar chi2{0};
+    int n = 0;
+    const Scalar sf = reference_sigma();
+    const Scalar hn = full().template segment<3>(kHn0).norm();
+    for (int i = 0; i < n_kept_; ++i) {
+      if (batch_.store()[static_cast<std::size_t>(i)].outlier()) continue;
+      const Prepared pr = kept(i);
+      Vec3<Scalar> rw;
+      Mat<Scalar, 3, kStates> hw;
+      if (!linearise(pr, &rw, &hw)) return kNaN;
+      chi2 += rw.squaredNorm();
+      n += 3;
+      if (std::isfinite(pr.f)) {
+        const Scalar e = (pr.f - hn) / sf;
+        chi2 += e * e;
+        ++n;
+      }
+    }
+    return n > 0 ? chi2 / static_cast<Scalar>(n) : kNaN;
+  }
+
+  // Nominal + error folded into the nominal (x = 0 afterwards, covariance unchanged).
+  void fold_all() noexcept {
+    rm_nom_ = rm_current();
+    const StateVec f = full();
+    nom_ = f;
+    nom_.template segment<3>(kRm0).setZero();
+    x_.setZero();
+  }
+  SensorModel<Scalar> model_nominal() const noexcept {
+    SensorModel<Scalar> m;
+    m.w = w();
+    m.o = offset_ref_nT();
+    m.rm = rm_current();
+    return m;
+  }
+  void maybe_fold_rm() noexcept {
+    const Vec3<Scalar> phi = x_.template segment<3>(kRm0);
+    if (phi.squaredNorm() > Scalar(0) && phi.norm() > cfg_.rm_fold_rad) {
+      // The covariance stays that of phi: the reset Jacobian I - [phi/2 x] differs from I by the
+      // fold threshold's size (E-VF-A).
+      rm_nom_ = rm_current();
+      x_.template segment<3>(kRm0).setZero();
+      ++counters_.fold_rm;
+    }
+  }
+
+  // ---- tilt spread and the heading rule
+  // ----------------------------------------------------------
+  void note_tilt(const Mat3<Scalar>& r) noexcept {
+    const Vec3<Scalar> u = r.col(2);  // Up in body axes: R_bn e3
+    ++tilt_n_;
+    const Vec3<Scalar> delta = u - tilt_mean_;
+    tilt_mean_ += delta / static_cast<Scalar>(tilt_n_);
+    tilt_m2_ += delta * (u - tilt_mean_).transpose();
+    if (running_ && !tilt_released_) {
+      update_tilt_release();
+      if (tilt_released_) held_[kRmHeading] = false;
+    }
+  }
+  Scalar tilt_spread_rad() const noexcept {
+    if (tilt_n_ < 2) return Scalar(0);
+    return std::sqrt(std::max(tilt_m2_.trace() / static_cast<Scalar>(tilt_n_), Scalar(0)));
+  }
+  void update_tilt_release() noexcept {
+    if (tilt_spread_rad() >= deg_to_rad(cfg_.min_tilt_spread_deg)) tilt_released_ = true;
+  }
+
+  // ---- measurement model ---------------------------------------------------------------------
+  // Exp(a [k x]) for a rotation vector v = a k (Rodrigues; active).
+  static Mat3<Scalar> exp_so3(const Vec3<Scalar>& v) noexcept {
+    const Scalar a = v.norm();
+    if (!(a > Scalar(0))) return Mat3<Scalar>::Identity();
+    return Eigen::AngleAxis<Scalar>(a, v / a).toRotationMatrix();
+  }
+  static Mat3<Scalar> skew(const Vec3<Scalar>& v) noexcept {
+    Mat3<Scalar> s;
+    s << Scalar(0), -v(2), v(1), v(2), Scalar(0), -v(0), -v(1), v(0), Scalar(0);
+    return s;
+  }
+
+  // Whitened residual and Jacobian of a vector sample at the current estimate (E-VF-2, E-VF-3).
+  bool linearise(const Prepared& p, Vec3<Scalar>* rw, Mat<Scalar, 3, kStates>* hw) const noexcept {
+    const StateVec xf = full();
+    const Mat3<Scalar> wm = w();
+    const Mat3<Scalar> rmt = rm_current().toRotationMatrix().transpose();
+    const Scalar tau = xf(kDt);
+    const Mat3<Scalar> e = exp_so3(Vec3<Scalar>(-tau * p.omega));
+    const Mat3<Scalar> et_r = e * p.r.transpose();  // E R^T
+    const Mat3<Scalar> mm = et_r * rmt;             // M = E R^T Rm^T
+    const Vec3<Scalar> v =
+        p.m - xf.template segment<3>(kO0) - xf.template segment<3>(kTc0) * p.dtemp;
+    const Vec3<Scalar> hs = wm * v;
+    const Vec3<Scalar> hb = rmt * hs;
+    const Vec3<Scalar> g = mm * hs;
+    const Vec3<Scalar> hn = xf.template segment<3>(kHn0);
+    const Vec3<Scalar> r = g - hn;
+    const Mat3<Scalar> pm = mm * wm;  // P = M W
+    Mat<Scalar, 3, kStates> h = Mat<Scalar, 3, kStates>::Zero();
+    for (int k = 0; k < kWEntries; ++k)
+      h.col(kW0 + k) =
+          mm.col(kWRow[static_cast<std::size_t>(k)]) * v(kWCol[static_cast<std::size_t>(k)]);
+    h.template block<3, 3>(0, kO0) = -pm;
+    h.template block<3, 3>(0, kRm0) = -et_r * skew(hb);
+    h.template block<3, 3>(0, kHn0) = -Mat3<Scalar>::Identity();
+    h.col(kDt) = -p.omega.cross(g);
+    h.template block<3, 3>(0, kTc0) = -pm * p.dtemp;
+    for (int k = 0; k < kStates; ++k)
+      if (held_[static_cast<std::size_t>(k)]) h.col(k).setZero();
+    // Residual covariance (E-OS-3): magnetometer noise through P, attitude noise across h_n.
+    const Scalar sm = noise_factor_ * std::max(cfg_.mag_noise_nT / scale_or_one(),
+                                               Scalar(16) * std::numeric_limits<Scalar>::epsilon());
+    const Scalar sa = noise_factor_ * cfg_.attitude_noise_rad;
+    Mat3<Scalar> c;
+    if (cfg_.attitude_model == AttitudeNoiseModel::kLiEuler) {
+      const Scalar ax = p.r(1, 1), ay = -p.r(1, 0);
+      const Scalar al = std::sqrt(ax * ax + ay * ay);
+      const Vec3<Scalar> a1 =
+          al > Scalar(0) ? Vec3<Scalar>(ax / al, ay / al, Scalar(0)) : Vec3<Scalar>::UnitX();
+      c.col(0) = Vec3<Scalar>::UnitZ().cross(hn);
+      c.col(1) = a1.cross(hn);
+      c.col(2) = Vec3<Scalar>(p.r.row(1).transpose()).cross(hn);
+    } else {
+      c = skew(hn).transpose();
+    }
+    const Mat3<Scalar> cov = sm * sm * (pm * pm.transpose()) + sa * sa * (c * c.transpose());
+    // Cholesky L L^T of the 3x3 covariance and forward substitution (no level-3 solver).
+    Mat3<Scalar> l = Mat3<Scalar>::Zero();
+    for (int j = 0; j < 3; ++j) {
+      Scalar dj = cov(j, j);
+      for (int k = 0; k < j; ++k)
+        dj -= l(j, k) * l(j, k);
+      if (!(dj > Scalar(0))) return false;
+      l(j, j) = std::sqrt(dj);
+      for (int i = j + 1; i < 3; ++i) {
+        Scalar a = cov(i, j);
+        for (int k = 0; k < j; ++k)
+          a -= l(i, k) * l(j, k);
+        l(i, j) = a / l(j, j);
+      }
+    }
+    for (int i = 0; i < 3; ++i) {
+      Scalar ri = r(i);
+      Vec<Scalar, kStates> hi = h.row(i).transpose();
+      for (int k = 0; k < i; ++k) {
+        ri -= l(i, k) * (*rw)(k);
+        hi -= l(i, k) * hw->row(k).transpose();
+      }
+      (*rw)(i) = ri / l(i, i);
+      hw->row(i) = (hi / l(i, i)).transpose();
+    }
+    return rw->allFinite() && hw->allFinite();
+  }
+
+  Scalar reference_sigma() const noexcept {
+    return std::max(cfg_.reference_sigma_nT / scale_or_one(),
+                    Scalar(16) * std::numeric_limits<Scalar>::epsilon());
+  }
+
+  // Scalar reference |h_n| = F (E-VF-4). Returns false when gated.
+  bool reference_update(Scalar f, bool gate) noexcept {
+    const Vec3<Scalar> hn = full().template segment<3>(kHn0);
+    const Scalar n = hn.norm();
+    if (!(n > Scalar(0))) return false;
+    StateVec h = StateVec::Zero();
+    h.template segment<3>(kHn0) = hn / n;
+    const Scalar sf = noise_factor_ * reference_sigma();
+    const Scalar r = sf * sf;
+    const Scalar nu = f - n;
+    const StateVec fv = ut_times(h);
+    const Scalar s_pred = fv.dot(d_.cwiseProduct(fv)) + r;
+    const Scalar nis = nu * nu / s_pred;
+    if (gate && cfg_.gate_nis > Scalar(0) && !(nis <= cfg_.gate_nis)) return false;
+    StateVec k;
+    Scalar s;
+    bierman(fv, r, &k, &s);
+    x_ += k * (nu / s);
+    return true;
+  }
+
+  // Three whitened scalar updates of a vector sample (E-VF-2). With `gate`, the sample is rejected
+  // as a whole when any component's NIS (at the prior covariance) exceeds the gate.
+  enum class VecResult : std::uint8_t { kApplied, kGated, kFailed };
+  VecResult vector_update(const Prepared& p, bool gate) noexcept {
+    Vec3<Scalar> rw;
+    Mat<Scalar, 3, kStates> hw;
+    if (!linearise(p, &rw, &hw)) return VecResult::kFailed;
+    std::array<StateVec, 3> f;
+    Scalar nis_max{0};
+    for (int j = 0; j < 3; ++j) {
+      f[static_cast<std::size_t>(j)] = ut_times(hw.row(j).transpose());
+      const StateVec& fj = f[static_cast<std::size_t>(j)];
+      const Scalar sj = fj.dot(d_.cwiseProduct(fj)) + Scalar(1);
+      nis_max = std::max(nis_max, rw(j) * rw(j) / sj);
+    }
+    last_nis_ = nis_max;
+    if (gate && cfg_.gate_nis > Scalar(0) && !(nis_max <= cfg_.gate_nis)) return VecResult::kGated;
+    const StateVec x_lin = x_;
+    for (int j = 0; j < 3; ++j) {
+      const StateVec hj = hw.row(j).transpose();
+      const StateVec fj = j == 0 ? f[0] : ut_times(hj);
+      // Linearised once per sample: the later components see the earlier components' step.
+      const Scalar nu = -rw(j) - hj.dot(x_ - x_lin);
+      StateVec k;
+      Scalar s;
+      bierman(fj, Scalar(1), &k, &s);
+      x_ += k * (nu / s);
+      window_nis_sum_ += nu * nu / s;
+      ++window_nis_n_;
+    }
+    return VecResult::kApplied;
+  }
+
+  void add_process_noise(Scalar interval_s) noexcept {
+    const Scalar s2 = scale_or_one() * scale_or_one();
+    const Scalar qo = cfg_.offset_q_nT2_per_s * interval_s / s2;
+    const Scalar qh = cfg_.field_q_nT2_per_s * interval_s / s2;
+    for (int k = 0; k < 3; ++k) {
+      if (qo > Scalar(0)) add_diagonal_noise(kO0 + k, qo);
+      if (qh > Scalar(0)) add_diagonal_noise(kHn0 + k, qh);
+    }
+  }
+
+  VfStatus live_step(const Prepared& p) noexcept {
+    VfStatus status = VfStatus::kAccepted;
+    if (std::isfinite(p.f)) {
+      if (reference_update(p.f, true)) {
+        ++counters_.reference_updates;
+        consecutive_ref_gated_ = 0;
+      } else {
+        ++counters_.gated_reference;
+        if (++consecutive_ref_gated_ < cfg_.field_change_after)
+          return window_check(VfStatus::kGated, true);
+        // The reference says the field changed (E-VF-8): re-open h_n and take this sample.
+        reopen_field();
+        if (!reference_update(p.f, true)) return window_check(VfStatus::kGated, true);
+        status = VfStatus::kFieldReopened;
+      }
+    }
+    if (held_[kRmHeading]) ++counters_.heading_held;
+    const VecResult vr = vector_update(p, true);
+    if (vr == VecResult::kFailed) return reset(VfResetReason::kNonFiniteState);
+    if (vr == VecResult::kGated) {
+      ++counters_.gated;
+      if (++consecutive_rejections_ >= cfg_.max_consecutive_rejections && cfg_.divergence_detection)
+        return reset(VfResetReason::kConsecutiveRejections);
+      return window_check(VfStatus::kGated, true);
+    }
+    consecutive_rejections_ = 0;
+    maybe_fold_rm();
+    if (!x_.allFinite() || !d_.allFinite() || !u_upper_finite())
+      return reset(VfResetReason::kNonFiniteState);
+    if (!(d_.array() > Scalar(0)).all()) return reset(VfResetReason::kCovarianceNotPositive);
+    if (!(std::abs(w().determinant()) > std::numeric_limits<Scalar>::epsilon()))
+      return reset(VfResetReason::kSingularModel);
+    ++counters_.updates;
+    return window_check(status, false);
+  }
+
+  VfStatus window_check(VfStatus status, bool gated) noexcept {
+    ++window_n_;
+    if (gated) ++window_gated_;
+    if (window_n_ < cfg_.nis_window) return status;
+    const Scalar frac = static_cast<Scalar>(window_gated_) / static_cast<Scalar>(window_n_);
+    const Scalar mean_nis =
+        window_nis_n_ > 0 ? window_nis_sum_ / static_cast<Scalar>(window_nis_n_) : Scalar(0);
+    window_n_ = 0;
+    window_gated_ = 0;
+    window_nis_sum_ = 0;
+    window_nis_n_ = 0;
+    if (cfg_.divergence_detection) {
+      if (frac > cfg_.gated_fraction_limit) return reset(VfResetReason::kTooManyGated);
+      if (mean_nis > cfg_.nis_mean_limit) return reset(VfResetReason::kNisTooHigh);
+    }
+    return status;
+  }
+
+  VfStatus reset(VfResetReason reason) noexcept {
+    last_reset_ = reason;
+    ++counters_.resets;
+    restart();
+    return VfStatus::kReset;
+  }
+
+  // Partial reset: h_n's covariance re-opened and decorrelated, everything else kept.
+  void reopen_field() noexcept {
+    StateMat p = covariance_normalised();
+    const Scalar sh = cfg_.field_reopen_sigma_nT / scale_or_one();
+    for (int k = kHn0; k < kHn0 + 3; ++k) {
+      for (int j = 0; j < kStates; ++j) {
+        p(k, j) = Scalar(0);
+        p(j, k) = Scalar(0);
+      }
+      p(k, k) = sh * sh;
+    }
+    if (ud_factorise(p)) {
+      last_reset_ = VfResetReason::kFieldChange;
+      ++counters_.field_reopens;
+      consecutive_ref_gated_ = 0;
+      consecutive_rejections_ = 0;
+    }
+  }
+
+  // ---- U-D factor updates (as scalar_ekf.hpp, E-Ge-C) ------------------------------------------
+  StateMat covariance_normalised() const noexcept {
+    StateMat p = StateMat::Zero();
+    for (int i = 0; i < kStates; ++i)
+      for (int j = i; j < kStates; ++j) {
+        Scalar acc{0};
+        for (int k = j; k < kStates; ++k)
+          acc += u_(i, k) * d_(k) * u_(j, k);
+        p(i, j) = acc;
+        p(j, i) = acc;
+      }
+    return p;
+  }
+  StateVec ut_times(const StateVec& h) const noexcept {
+    StateVec f;
+    for (int j = 0; j < kStates; ++j) {
+      Scalar acc = h(j);
+      for (int i = 0; i < j; ++i)
+        acc += u_(i, j) * h(i);
+      f(j) = acc;
+    }
+    return f;
+  }
+  bool u_upper_finite() const noexcept {
+    Scalar probe{0};
+    for (int j = 1; j < kStates; ++j)
+      for (int i = 0; i < j; ++i)
+        probe += u_(i, j) * Scalar(0);
+    return probe == Scalar(0);
+  }
+  // Agee-Turner: U D U^T + c e_k e_k^T, c > 0.
+  void add_diagonal_noise(int k, Scalar c) noexcept {
+    StateVec a = StateVec::Zero();
+    a(k) = Scalar(1);
+    for (int j = k; j > 0; --j) {
+      const Scalar s = a(j);
+      const Scalar dj = d_(j) + c * s * s;
+      const Scalar beta = c * s / dj;
+      c = c * d_(j) / dj;
+      d_(j) = dj;
+      for (int i = 0; i < j; ++i) {
+        a(i) -= s * u_(i, j);
+        u_(i, j) += beta * a(i);
+      }
+    }
+    d_(0) += c * a(0) * a(0);
+  }
+  // Bierman's scalar update for f = U^T h and variance r: unnormalised gain k and s = h P h^T + r.
+  void bierman(const StateVec& f, Scalar r, StateVec* k_out, Scalar* s_out) noexcept {
+    const StateVec v = d_.cwiseProduct(f);
+    StateVec k = StateVec::Zero();
+    Scalar alpha = r + f(0) * v(0);
+    d_(0) *= r / alpha;
+    k(0) = v(0);
+    for (int j = 1; j < kStates; ++j) {
+      const Scalar beta = alpha;
+      alpha += f(j) * v(j);
+      const Scalar lambda = -f(j) / beta;
+      d_(j) *= beta / alpha;
+      for (int i = 0; i < j; ++i) {
+        const Scalar uij = u_(i, j);
+        u_(i, j) = uij + lambda * k(i);
+        k(i) += v(j) * uij;
+      }
+      k(j) = v(j);
+    }
+    *k_out = k;
+    *s_out = alpha;
+  }
+  bool ud_factorise(const StateMat& p) noexcept {
+    StateMat u = StateMat::Identity();
+    StateVec d = StateVec::Zero();
+    for (int j = kStates - 1; j >= 0; --j) {
+      Scalar dj = p(j, j);
+      for (int k = j + 1; k < kStates; ++k)
+        dj -= d(k) * u(j, k) * u(j, k);
+      if (!(dj > Scalar(0))) return false;
+      d(j) = dj;
+      for (int i = 0; i < j; ++i) {
+        Scalar a = p(i, j);
+        for (int k = j + 1; k < kStates; ++k)
+          a -= d(k) * u(i, k) * u(j, k);
+        u(i, j) = a / dj;
+      }
+    }
+    u_ = u;
+    d_ = d;
+    return true;
+  }
+
+  Config cfg_{};
+  VfCounters counters_{};
+  VfResetReason last_reset_ = VfResetReason::kNone;
+  Verdict init_verdict_ = Verdict::kNoData;
+  Scalar scale_{0};
+  Scalar t0_ = kNaN;      // reference temperature
+  Scalar last_t_ = kNaN;  // last temperature seen (held for samples without one)
+  bool running_ = false;
+  bool pending_start_ = false;
+  VfStart<Scalar> stored_{};
+  StateVec nom_ = StateVec::Zero();
+  StateVec x_ = StateVec::Zero();
+  Quat<Scalar> rm_nom_ = Quat<Scalar>::Identity();
+  StateMat u_ = StateMat::Identity();
+  StateVec d_ = StateVec::Ones();
+  std::array<bool, kStates> held_{};
+  // Start from data: kept samples (m, F, R_bn in the batch store) with their rate and temperature.
+  Batch batch_{};
+  int n_kept_ = 0;
+  Scalar min_rotation_deg_{2};  // attitude step between kept samples (grows after refusals)
+  Mat<Scalar, 3, kInitCapacity> kept_omega_ = Mat<Scalar, 3, kInitCapacity>::Zero();
+  Vec<Scalar, kInitCapacity> kept_t_ = Vec<Scalar, kInitCapacity>::Zero();
+  std::array<bool, static_cast<std::size_t>(kInitCapacity)> kept_has_f_{};
+  // Tilt statistics of the body-frame vertical (Welford).
+  std::uint32_t tilt_n_ = 0;
+  Vec3<Scalar> tilt_mean_ = Vec3<Scalar>::Zero();
+  Mat3<Scalar> tilt_m2_ = Mat3<Scalar>::Zero();
+  bool tilt_released_ = false;
+  // Divergence windows.
+  int window_n_ = 0;
+  int window_gated_ = 0;
+  Scalar window_nis_sum_{0};
+  int window_nis_n_ = 0;
+  int consecutive_rejections_ = 0;
+  int consecutive_ref_gated_ = 0;
+  Scalar last_nis_{0};
+  Scalar noise_factor_{1};  // replay damping (1 when running live)
+};
+
+}  // namespace magvec::core

@@ -1,12 +1,15 @@
 // LCM <-> HAL conversions; see lcm_codec.hpp.
 #include "magvec/host/daemon/lcm_codec.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <cstring>
 #include <limits>
 #include <sstream>
 #include <string>
+
+#include "magvec/host/daemon/guidance_text.hpp"
 
 namespace magvec::host::daemon {
 
@@ -244,6 +247,16 @@ magvec_lcm::calibration_state to_lcm(const CalibrationStatus& s, std::uint64_t t
   m.cal_id = static_cast<std::int32_t>(s.cal_id);
   m.persisted_cal_id = static_cast<std::int32_t>(persisted_cal_id);
   model_to_arrays(s.active, m.w, m.o_nT, m.rm_quat);
+  m.coverage_cells = static_cast<std::int32_t>(s.guidance.cells);  // the mask's bits as they are
+  m.coverage_needed = s.guidance.cells_needed;
+  auto i32 = [](std::size_t n) {
+    return static_cast<std::int32_t>(std::min<std::size_t>(n, 0x7FFFFFFF));
+  };
+  m.samples = i32(s.samples);
+  m.samples_needed = i32(s.samples_needed);
+  m.hint_code = guidance_hint_name(s.guidance.hint);
+  m.hint = s.hint;
+  m.residual_nT = s.residual_nT;
   return m;
 }
 

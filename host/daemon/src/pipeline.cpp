@@ -1,8 +1,12 @@
 // magvecd Pipeline; see pipeline.hpp.
 #include "magvec/host/daemon/pipeline.hpp"
 
+#include <algorithm>
 #include <cmath>
 
+#include "magvec/core/calibration_guidance.hpp"
+#include "magvec/core/coverage.hpp"
+#include "magvec/host/daemon/guidance_text.hpp"
 #include "magvec/host/daemon/sim_setup.hpp"
 #include "magvec/host/hil/calibrators.hpp"
 
@@ -22,6 +26,51 @@ std::string solver_reason(const EkfCal&, std::uint8_t code) {
   return core::ekf_cal_code_name(code);
 }
 
+// What each calibrator has and needs before a solve can be tried (calibration_guidance.hpp).
+void guidance_needs(const hil::NullCalibrator&, core::GuidanceInput<double>*) {}
+
+void guidance_needs(const LiCal& c, core::GuidanceInput<double>* in) {
+  in->cells = c.coverage_cells();
+  // ready() waits for the calibrator's coverage; the acceptance policy's is not above it.
+  const double cover = std::max(c.config().min_coverage, c.config().batch.limits.min_coverage);
+  in->cells_needed = static_cast<int>(std::ceil(cover * core::kCoverageCells - 1e-9));
+  in->samples = c.stored();
+  in->samples_needed = c.samples_needed();
+  in->need_reference = !std::isfinite(c.config().batch.field_nT);
+  in->need_attitude = c.config().method != core::BatchMethod::kEllipsoidOnly;
+}
+
+void guidance_needs(const EkfCal& c, core::GuidanceInput<double>* in) {
+  // No coverage rule: the cells of the alignment store's readings are shown and aimed at (more
+  // directions, faster convergence). The samples are the alignment store's (when it aligns),
+  // the rest the filter's start-up set, then its updates and predicted intensity 1-sigma.
+  core::CoverageGrid grid;
+  const auto& store = c.alignment_store();
+  for (std::size_t i = 0; i < store.size(); ++i)
+    grid.add(store[i].raw());
+  in->cells = grid.cells();
+  in->cells_needed = 0;
+  if (c.config().align) {
+    in->samples = c.align_samples();
+    in->samples_needed = c.align_samples_needed();
+  }
+  in->need_attitude = c.config().align;
+  const auto& f = c.filter();
+  if (!f.initialised()) {
+    const int need = std::max(f.config().init_samples, 1);
+    in->other_fraction = 0.5 * static_cast<double>(f.startup_samples()) / need;
+  } else {
+    const double pu = static_cast<double>(c.updates()) /
+                      static_cast<double>(std::max<std::uint32_t>(c.config().min_updates, 1U));
+    const double sig = c.sigma_f_nT();
+    const double ps = sig > 0 ? c.config().max_sigma_f_nT / sig : 1.0;
+    in->other_fraction = std::min(pu, ps);
+  }
+}
+
+// Readings the residual average spans (exponential, weight 1/kResidualSpan per reading).
+constexpr double kResidualSpan = 100;
+
 template <typename Calibrator>
 class PipelineImpl final : public Pipeline {
  public:
@@ -35,6 +84,7 @@ class PipelineImpl final : public Pipeline {
   void on_attitude(const hal::AttitudeSample& a) noexcept override { core_.on_attitude(a); }
   void on_magnetometer(const hal::MagnetometerSample& s, double f_ref_nT) noexcept override {
     core_.on_magnetometer(s, f_ref_nT);
+    note_reading(s, f_ref_nT);
   }
   void on_read_error() noexcept override { core_.on_read_error(); }
   void flush() noexcept override { core_.flush(); }
@@ -97,6 +147,22 @@ class PipelineImpl final : public Pipeline {
     s.cal_id = lp.cal_id();
     s.active = lp.active_model();
     s.output = OutputQuality{lp.active_aligned(), lp.active_sigma_f_nT(), lp.active_sigma_enu_nT()};
+    s.residual_nT = residual_n_ > 0 ? std::sqrt(residual_ms_) : std::nan("");
+    core::GuidanceInput<double> in;
+    in.collecting = lp.state() == core::CalState::kCollecting;
+    guidance_needs(*cal_, &in);
+    in.have_reference = have_reference_;
+    in.have_field = have_field_;
+    in.m_nT = last_m_;
+    in.have_attitude = attitude_now(&in.r_bn);
+    s.guidance = core::calibration_guidance(in);
+    s.samples = in.samples;
+    s.samples_needed = in.samples_needed;
+    s.hint = guidance_text(s.guidance);
+    if (in.collecting) s.progress = s.guidance.progress;
+    // Solving and validating: everything needed was in (the loop's progress says 0 there).
+    if (lp.state() == core::CalState::kSolving || lp.state() == core::CalState::kValidating)
+      s.progress = 1;
     return s;
   }
   core::CalState state() const noexcept override { return core_.loop().state(); }
@@ -109,6 +175,48 @@ class PipelineImpl final : public Pipeline {
   hil::LoopCore<Calibrator> core_;
   bool offset_fixed_;
   std::uint32_t handed_ticket_{0};
+  // The latest reading and the residual average (display only: never fed back into the records).
+  bool have_field_{false};
+  bool have_reference_{false};
+  core::Vec3<double> last_m_ = core::Vec3<double>::Zero();
+  std::uint64_t last_t_us_{0};
+  double residual_ms_{0};
+  double residual_n_{0};
+  std::uint32_t residual_cal_id_{0};
+
+  void note_reading(const hal::MagnetometerSample& s, double f_ref_nT) noexcept {
+    const core::Vec3<double> m(s.m_nT[0], s.m_nT[1], s.m_nT[2]);
+    if (!m.allFinite() || (s.flags & (hal::kMagInvalidMask | hal::kMagNotFresh)) != 0) return;
+    have_field_ = true;
+    last_m_ = m;
+    last_t_us_ = s.t_us;
+    have_reference_ = std::isfinite(f_ref_nT) && f_ref_nT > 0;
+    if (!have_reference_) return;
+    if (core_.loop().cal_id() != residual_cal_id_) {  // a new calibration: a new average
+      residual_cal_id_ = core_.loop().cal_id();
+      residual_n_ = 0;
+      residual_ms_ = 0;
+    }
+    const auto& model = core_.loop().active_model();
+    const double r = (model.w * (m - model.o)).norm() - f_ref_nT;
+    residual_n_ = std::min(residual_n_ + 1, kResidualSpan);
+    residual_ms_ += (r * r - residual_ms_) / residual_n_;
+  }
+
+  // The attitude at the latest reading's time, when the INS has one near it.
+  bool attitude_now(core::Mat3<double>* r_bn) const noexcept {
+    const auto& buf = core_.buffer();
+    if (buf.size() == 0 || !have_field_) return false;
+    const std::uint64_t newest = buf.newest_us();
+    const std::uint64_t t = std::min(newest, last_t_us_);
+    if (last_t_us_ > newest + kAttitudeStaleUs) return false;
+    const core::AttitudeQuery<double> q = buf.at(t);
+    if (!core::attitude_usable(q.status)) return false;
+    *r_bn = core::r_bn_from_quat(q.q_nb);
+    return true;
+  }
+  // An INS silent for longer than this is "attitude missing" to the operator.
+  static constexpr std::uint64_t kAttitudeStaleUs = 500'000;
 };
 
 }  // namespace

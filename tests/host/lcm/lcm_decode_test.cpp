@@ -80,6 +80,8 @@ TEST(LcmDecode, EveryStringFieldOfEveryTypeIsChecked) {
   r.message = "ok";
   magvec_lcm::pipeline_event e = session_start_event(1, "[lcm]\n");
   // Offsets of the length words: after the fingerprint (8) and the fields before each string.
+  constexpr std::size_t kCalStateHintCode =
+      8 + 8 + 4 + 3 + 4 + 5 + 4 + 5 + 4 + 1 + 8 + 8 + 4 + 4 + 9 * 8 + 3 * 8 + 4 * 8 + 4 * 4;
   struct Case {
     std::vector<std::uint8_t> bytes;
     std::vector<std::size_t> length_offsets;
@@ -87,7 +89,9 @@ TEST(LcmDecode, EveryStringFieldOfEveryTypeIsChecked) {
   };
   const std::vector<Case> cases = {
       {encode(s),
-       {8 + 8, 8 + 8 + 4 + 3, 8 + 8 + 4 + 3 + 4 + 5, 8 + 8 + 4 + 3 + 4 + 5 + 4 + 5},
+       {8 + 8, 8 + 8 + 4 + 3, 8 + 8 + 4 + 3 + 4 + 5, 8 + 8 + 4 + 3 + 4 + 5 + 4 + 5,
+        // hint_code and hint: after solver_reason (""), 2 doubles, 2 int32, w, o, rm, 4 int32
+        kCalStateHintCode, kCalStateHintCode + 4 + 1},
        [](const std::vector<std::uint8_t>& b) {
          magvec_lcm::calibration_state m{};
          return m.decode(b.data(), 0, static_cast<int>(b.size()));

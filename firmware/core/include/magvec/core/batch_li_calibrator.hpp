@@ -152,6 +152,9 @@ class BatchLiCalibrator {
   // --- diagnostics ------------------------------------------------------------------------------
   // Fraction of the 32 direction cells hit by the kept raw field directions.
   Scalar coverage() const noexcept { return cells_.fraction<Scalar>(); }
+  // The cells themselves (bit i: cell i of coverage.hpp's grid) and the samples ready() waits for.
+  std::uint32_t coverage_cells() const noexcept { return cells_.cells(); }
+  std::size_t samples_needed() const noexcept { return min_samples(); }
   std::size_t stored() const noexcept { return batch_.store().size(); }
   const BatchLiCounts& counts() const noexcept { return counts_; }
   bool solved() const noexcept { return solved_; }

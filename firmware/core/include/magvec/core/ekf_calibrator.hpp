@@ -186,6 +186,9 @@ class EkfCalibrator {
   const Filter& filter() const noexcept { return ekf_; }
   std::uint32_t updates() const noexcept { return ekf_.counters().updates - updates_at_begin_; }
   std::size_t align_samples() const noexcept { return store_.size(); }
+  std::size_t align_samples_needed() const noexcept { return min_align(); }
+  // The motion-decimated {m, F, R_bn} samples kept for the misalignment fit.
+  const SampleStore<Scalar, AlignCapacity>& alignment_store() const noexcept { return store_; }
   // Predicted 1-sigma of the calibrated intensity at the last used sample (inf before the fit).
   Scalar sigma_f_nT() const noexcept {
     if (!ekf_.initialised() || !have_m_) return std::numeric_limits<Scalar>::infinity();

@@ -13,6 +13,7 @@
 #include <string>
 
 #include "calibration/calibration_file.hpp"
+#include "magvec/core/calibration_guidance.hpp"
 #include "magvec/core/sensor_loop.hpp"
 #include "magvec/core/sensor_model.hpp"
 #include "magvec/hal/attitude_source.hpp"
@@ -33,6 +34,15 @@ struct CalibrationStatus {
   std::uint32_t cal_id{0};
   core::SensorModel<double> active{};
   OutputQuality output{};  // what the records carry with `active` (alignment, 1-sigmas)
+  // While collecting: what the calibrator has and needs, the hint (core/calibration_guidance.hpp;
+  // progress above is guidance.progress then) and its text (guidance_text.hpp).
+  core::Guidance<double> guidance{};
+  std::size_t samples{0};
+  std::size_t samples_needed{0};
+  std::string hint;
+  // RMS of |h| - F of the active calibration, exponentially averaged over ~100 readings with a
+  // reference (NaN: none yet).
+  double residual_nT{std::numeric_limits<double>::quiet_NaN()};
 };
 
 // A solve handed off the acquisition path (see Pipeline::take_solve_job).

@@ -60,6 +60,10 @@ class Daemon final : public EventHandler {
   bool persist(const CalibrationStatus& st, const char* why);
   void shutdown_persist();
   void publish_status();
+  void publish_status(const CalibrationStatus& st);
+  // While collecting: the state again when its progress, cells or hint changed (at most every
+  // kGuidancePeriodUs), so that an operator's display follows the manoeuvre.
+  void publish_guidance_changes();
   void publish_health();
   void on_command(const magvec_lcm::command& cmd);
   bool stopping() const noexcept;
@@ -100,6 +104,9 @@ class Daemon final : public EventHandler {
   std::string last_state_;
   core::CalState last_state_enum_{core::CalState::kIdle};
   std::int32_t last_cal_id_{-1};
+  std::string last_guidance_;  // progress (percent), cells and hint last published
+  std::uint64_t next_guidance_us_{0};
+  static constexpr std::uint64_t kGuidancePeriodUs = 200'000;
   // Processing time of a raw message (publish + pipeline: one sample, or with lcm.raw_batch > 1
   // one batch), worst while a solve ran and otherwise.
   bool solve_in_flight_{false};

@@ -2,7 +2,8 @@
 # End-to-end test of magvecd over real LCM udpm inside a private network namespace
 # (loopback with multicast, ttl=0: nothing leaves the namespace):
 #   1. lcm-logger records while `magvecd --sim` runs ~4 s: message rates as configured, the
-#      calibration applies and is persisted, `magvec ctl status` answers, SIGTERM -> exit 0 < 1 s;
+#      calibration applies and is persisted, `magvec ctl status` answers, `magvec ctl watch --once`
+#      draws the state (and without a daemon exits 4 after its timeout), SIGTERM -> exit 0 < 1 s;
 #   2. `magvec replay --lcm-log` reproduces the live outputs in the log bit for bit, and so does a
 #      subscriber fed by the file:// provider (speed=0); with lcm.raw_batch = 10 at 1 kHz too (raw
 #      samples in mag_sample_batch messages), and raw_batch = 0 is a configuration error;
@@ -102,8 +103,16 @@ CTL_RC=$?
 check "magvec ctl status answers (rc $CTL_RC)" [ "$CTL_RC" -eq 0 ]
 check "ctl status reports an applied calibration" grep -q "state applied, .*cal_id 1, persisted cal_id 1" "$W/ctl_status1.out"
 cat "$W/ctl_status1.out"
+"$MAGVEC" ctl watch --once --url "$URL" --timeout 5 >"$W/watch1.out" 2>&1
+check "ctl watch --once draws the verdict" grep -q "^verdict: applied: cal_id 1, validation rms" "$W/watch1.out"
+check "ctl watch draws the 4 x 8 coverage map" [ "$(grep -c '^  z .*[#.]$' "$W/watch1.out")" -eq 4 ]
+cat "$W/watch1.out"
 stop_daemon "$D"
 stop_logger
+"$MAGVEC" ctl watch --once --url "$URL" --timeout 0.5 >"$W/watch_none.out" 2>&1
+WATCH_RC=$?
+check "ctl watch without a daemon exits 4 after --timeout (rc $WATCH_RC)" [ "$WATCH_RC" -eq 4 ]
+check "ctl watch without a daemon says so" grep -qF "no calibration state from magvecd on $URL" "$W/watch_none.out"
 echo "SIGTERM -> exit $STOP_RC after $STOP_MS ms"
 check "SIGTERM exits 0" [ "$STOP_RC" -eq 0 ]
 check "SIGTERM exit within 1 s ($STOP_MS ms)" [ "$STOP_MS" -lt 1000 ]

@@ -46,10 +46,11 @@ inline std::string guidance_text(const core::Guidance<double>& g) {
     return "turn towards " + std::string(compass_point(heading_deg)) + " (heading " +
            std::to_string(heading_deg) + " deg)";
   };
+  // Every empty cell a turn through all headings reaches after the manoeuvre's tilt.
   auto cells = [&g] {
     return g.target_cells > 0
-               ? ": " + std::to_string(g.target_cells) +
-                     (g.target_cells == 1 ? " empty cell" : " empty cells") + " that way"
+               ? " (" + std::to_string(g.target_cells) +
+                     (g.target_cells == 1 ? " empty cell" : " empty cells") + " in reach)"
                : std::string();
   };
   switch (g.hint) {

@@ -138,7 +138,15 @@ MagneticModel& MagneticModel::operator=(MagneticModel&&) noexcept = default;
 std::string MagneticModel::default_dir() {
   if (const char* env = std::getenv("MAGVEC_GEOMAG_DIR"); env != nullptr && *env != '\0')
     return env;
-  if (std::filesystem::exists(std::filesystem::path(MAGVEC_GEOMAG_SOURCE_DIR) / "wmm2025.wmm"))
+  // Installed: <prefix>/share/magvec/geomag next to <prefix>/bin, whatever the prefix was at
+  // build time (the Debian package installs a /usr/local-configured tree under /usr).
+  std::error_code ec;
+  const std::filesystem::path exe = std::filesystem::read_symlink("/proc/self/exe", ec);
+  if (!ec) {
+    const auto installed = exe.parent_path().parent_path() / "share" / "magvec" / "geomag";
+    if (std::filesystem::exists(installed / "wmm2025.wmm", ec)) return installed.string();
+  }
+  if (std::filesystem::exists(std::filesystem::path(MAGVEC_GEOMAG_SOURCE_DIR) / "wmm2025.wmm", ec))
     return MAGVEC_GEOMAG_SOURCE_DIR;
   return MAGVEC_GEOMAG_INSTALL_DIR;
 }

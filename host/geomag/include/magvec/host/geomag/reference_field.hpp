@@ -83,8 +83,8 @@ class MagneticModel {
   MagneticModel(const MagneticModel&) = delete;
   MagneticModel& operator=(const MagneticModel&) = delete;
 
-  // The shipped WMM2025: $MAGVEC_GEOMAG_DIR if set, else the source tree's data/geomag, else the
-  // installed share/magvec/geomag.
+  // The shipped WMM2025: $MAGVEC_GEOMAG_DIR if set, else ../share/magvec/geomag from the
+  // executable (installed), else the source tree's data/geomag, else the configured install path.
   static MagneticModel wmm2025();
   static std::string default_dir();
 

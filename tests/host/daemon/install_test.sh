@@ -25,12 +25,20 @@ check "installed daemon accepts the installed example config" \
   "$W/p/sbin/magvecd" --config "$W/p/etc/magvec/magvecd.toml" --check-config
 check "installed magvec runs" "$W/p/bin/magvec" --version
 if [ -f "$B/host/lcm/magvec_lcm.jar" ]; then
-  check "share/java/magvec_lcm.jar" [ -f "$W/p/share/java/magvec_lcm.jar" ]
+  check "share/magvec/magvec_lcm.jar" [ -f "$W/p/share/magvec/magvec_lcm.jar" ]
 fi
+check "share/magvec/magvec_report.py, executable" [ -x "$W/p/share/magvec/magvec_report.py" ]
+check "share/magvec/geomag/wmm2025.wmm" [ -f "$W/p/share/magvec/geomag/wmm2025.wmm" ]
 DESTDIR="$W/dest" cmake --install "$B" --prefix /usr/local >/dev/null 2>&1
 check "DESTDIR honoured (unit and binary)" \
   [ -f "$W/dest/usr/local/lib/systemd/system/magvecd.service" ] && [ -x "$W/dest/usr/local/sbin/magvecd" ]
-check "DESTDIR unit names /usr/local" grep -q "^ExecStart=/usr/local/sbin/magvecd" \
+check "DESTDIR unit names /usr/local" grep -q "^ExecStart=/usr/local/sbin/magvecd --config /usr/local/etc/magvec/magvecd.toml" \
   "$W/dest/usr/local/lib/systemd/system/magvecd.service"
+# The /usr prefix (the Debian package's): configuration in /etc, the unit in /lib/systemd/system.
+DESTDIR="$W/usr" cmake --install "$B" --prefix /usr >/dev/null 2>&1
+check "prefix /usr: /etc/magvec/magvecd.toml" [ -f "$W/usr/etc/magvec/magvecd.toml" ]
+check "prefix /usr: unit in /lib/systemd/system naming /etc" grep -q \
+  "^ExecStart=/usr/sbin/magvecd --config /etc/magvec/magvecd.toml" \
+  "$W/usr/lib/systemd/system/magvecd.service"
 echo "install test: $FAILS failure(s)"
 [ "$FAILS" -eq 0 ]

@@ -77,6 +77,12 @@ void prepare_state_dir(const Config& c) {
 // sample per poll without waiting on the command socket).
 constexpr std::uint64_t kCommandPollUs = 10'000;
 
+// What an operator's display shows of the guidance: a change of it is worth a message.
+std::string guidance_key(const CalibrationStatus& st) {
+  return std::to_string(static_cast<int>(st.progress * 100)) + " " +
+         std::to_string(st.guidance.cells) + " " + st.hint;
+}
+
 }  // namespace
 
 Daemon::Daemon(DaemonOptions o, DaemonSignals signals)
@@ -292,6 +298,9 @@ void Daemon::loop_session() {
     if (now >= next_status) {
       publish_status();
       next_status = now + status_us;
+    } else if (now >= next_guidance_us_) {
+      publish_guidance_changes();
+      next_guidance_us_ = now + kGuidancePeriodUs;
     }
   }
 }
@@ -368,10 +377,20 @@ void Daemon::shutdown_persist() {
 
 // ------------------------------------------------------------------ state, health, commands
 
+void Daemon::publish_guidance_changes() {
+  if (ep_->pipeline()->state() != core::CalState::kCollecting) return;
+  const CalibrationStatus st = ep_->pipeline()->status();
+  if (guidance_key(st) != last_guidance_) publish_status(st);
+}
+
 void Daemon::publish_status() {
-  const magvec_lcm::calibration_state s =
-      to_lcm(ep_->pipeline()->status(), last_t_us_, store_->persisted().cal_id);
+  publish_status(ep_->pipeline()->status());
+}
+
+void Daemon::publish_status(const CalibrationStatus& st) {
+  const magvec_lcm::calibration_state s = to_lcm(st, last_t_us_, store_->persisted().cal_id);
   publisher_->publish(config_.lcm.channels.cal_state, s);
+  last_guidance_ = guidance_key(st);
   if (s.state != last_state_ || s.cal_id != last_cal_id_) {
     spdlog::info("calibration state {} (progress {:.2f}, cal_id {}{}{})", s.state, s.progress,
                  s.cal_id, s.state == "failed" ? ", failure " + s.failure + " " : "",

@@ -55,16 +55,21 @@ void guidance_needs(const EkfCal& c, core::GuidanceInput<double>* in) {
     in->samples_needed = c.align_samples_needed();
   }
   in->need_attitude = c.config().align;
+  // The start-up set is the first tenth of the filter's need (a second or so), so that progress
+  // does not fall back when the filter starts counting its updates.
+  constexpr double kStartupShare = 0.1;
   const auto& f = c.filter();
   if (!f.initialised()) {
     const int need = std::max(f.config().init_samples, 1);
-    in->other_fraction = 0.5 * static_cast<double>(f.startup_samples()) / need;
+    in->other_fraction =
+        kStartupShare * std::min(1.0, static_cast<double>(f.startup_samples()) / need);
   } else {
     const double pu = static_cast<double>(c.updates()) /
                       static_cast<double>(std::max<std::uint32_t>(c.config().min_updates, 1U));
     const double sig = c.sigma_f_nT();
     const double ps = sig > 0 ? c.config().max_sigma_f_nT / sig : 1.0;
-    in->other_fraction = std::min(pu, ps);
+    in->other_fraction =
+        kStartupShare + (1 - kStartupShare) * std::clamp(std::min(pu, ps), 0.0, 1.0);
   }
 }
 

@@ -257,6 +257,9 @@ TEST(DaemonGuidance, EkfProgressRisesAndTheCellsAreShown) {
   ASSERT_GT(t.progress.size(), 5U);
   EXPECT_LT(t.progress.front(), 0.05);
   EXPECT_GT(*std::max_element(t.progress.begin(), t.progress.end()), 0.5);
+  // The start-up set, then the filter's own need: progress does not fall back by much.
+  for (std::size_t i = 1; i < t.progress.size(); ++i)
+    EXPECT_GT(t.progress[i], t.progress[i - 1] - 0.1) << i;
   EXPECT_NE(t.cells, 0U);
   EXPECT_GE(t.hints.size(), 2U);
 }

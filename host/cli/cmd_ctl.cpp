@@ -158,6 +158,7 @@ void run(const CtlOptions& o) {
             << ", persisted cal_id " << s.persisted_cal_id;
   if (s.state == "failed") std::cout << ", failure " << s.failure << " " << s.solver_reason;
   std::cout << ", validation rms " << s.validation_rms_nT << " nT\n";
+  if (!s.hint.empty()) std::cout << "hint: " << s.hint << "\n";
   if (!r.ok) throw CommandExit(3, "");
 }
 

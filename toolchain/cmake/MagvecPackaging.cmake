@@ -58,11 +58,22 @@ if(HELP2MAN)
     list(GET _f 0 _prog)
     list(GET _f 1 _sec)
     list(GET _f 2 _what)
+    # help2man runs the program: in a cross build (arm64) through a wrapper of the same name that
+    # runs it under the emulator (qemu-user), so binfmt_misc need not be registered.
+    set(_run $<TARGET_FILE:${_prog}>)
+    if(CMAKE_CROSSCOMPILING_EMULATOR)
+      list(JOIN CMAKE_CROSSCOMPILING_EMULATOR " " _emu)
+      set(_run ${_man}/run/${_prog})
+      file(GENERATE OUTPUT ${_run}
+           CONTENT "#!/bin/sh\nexec ${_emu} $<TARGET_FILE:${_prog}> \"$@\"\n"
+           FILE_PERMISSIONS OWNER_READ OWNER_WRITE OWNER_EXECUTE GROUP_READ GROUP_EXECUTE
+                            WORLD_READ WORLD_EXECUTE)
+    endif()
     add_custom_command(
       OUTPUT ${_man}/${_prog}.${_sec}.gz
       COMMAND ${HELP2MAN} --no-info --no-discard-stderr --section=${_sec}
               --version-string=${PROJECT_VERSION} "--name=${_what}"
-              --output=${_man}/${_prog}.${_sec} $<TARGET_FILE:${_prog}>
+              --output=${_man}/${_prog}.${_sec} ${_run}
       COMMAND gzip -9nf ${_man}/${_prog}.${_sec}
       DEPENDS ${_prog}
       COMMENT "help2man: ${_prog}.${_sec}"

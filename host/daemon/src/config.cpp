@@ -343,6 +343,50 @@ Config parse_config(const std::string& text, const std::string& source) {
   ids.integer("ekf_orientation_acc", &c.ins.ids.ekf_orientation_acc, 0, 0x7FF);
   ids.check_unknown();
   ins.check_unknown();
+
+  Table st = dev.sub("scalar");
+  auto& so = c.scalar;
+  st.boolean("enabled", &so.enabled);
+  st.one_of("format", &so.format, {"g882"});
+  st.str("device", &so.device);
+  if (so.device.empty()) st.fail("device", "must not be empty");
+  st.integer("baud", &so.baud, 300, 4'000'000);
+  st.integer("reconnect_ms", &so.reconnect_ms, 10, 600'000);
+  st.integer("latency_us", &so.latency_us, 0, 1'000'000);
+  std::string preamble(1, so.line.preamble);
+  st.str("preamble", &preamble);
+  // One printable character that cannot occur inside a line (digits, blank, '.', ',', the
+  // Julian clock's letters) or a line end.
+  if (preamble.size() != 1 || preamble[0] < 0x21 || preamble[0] > 0x7E ||
+      std::string("0123456789.,DHMS_").find(preamble[0]) != std::string::npos)
+    st.fail("preamble",
+            "'" + preamble +
+                "' must be one printable character other than a digit, '.', ',', D, H, M, S, _");
+  so.line.preamble = preamble[0];
+  st.integer("analog_channels", &so.line.analog_channels, 0,
+             drivers::G882LineDecoder::kMaxAnalogChannels);
+  st.boolean("julian_time", &so.line.julian_time);
+  st.number("min_field_nT", &so.line.min_field_nT, 0, 199999.999);
+  st.number("max_field_nT", &so.line.max_field_nT, 0, 199999.999);
+  if (!(so.line.min_field_nT < so.line.max_field_nT))
+    st.fail("max_field_nT", "must be above min_field_nT");
+  st.integer("min_signal", &so.line.min_signal, 0, 9999);
+  st.integer("max_gap_us", &so.align.max_gap_us, 1000, 10'000'000);
+  st.integer("max_distance_us", &so.align.max_distance_us, 0, 10'000'000);
+  st.integer("horizon_us", &so.align.horizon_us, 0, 10'000'000);
+  // A sample waits up to horizon_us in the aligner before the core's pipeline sees it: the INS
+  // epochs around it must still be in the attitude buffer (64 epochs, hil::LoopCore) by then, and
+  // the aligner's queue must hold horizon_us of magnetometer samples.
+  const double buffer_us = (64.0 - 4.0) / c.ins.rate_hz * 1e6 - c.ins.fusion_horizon_us;
+  if (so.enabled && static_cast<double>(so.align.horizon_us) > buffer_us)
+    st.fail("horizon_us", std::to_string(so.align.horizon_us) +
+                              " is longer than the INS attitude buffer holds with devices.ins "
+                              "rate_hz and fusion_horizon_us (at most " +
+                              std::to_string(static_cast<std::int64_t>(buffer_us)) + ")");
+  if (so.enabled && c.magnetometer.rate_hz * so.align.horizon_us * 1e-6 > kScalarQueueSamples)
+    st.fail("horizon_us", "holds more than " + std::to_string(kScalarQueueSamples) +
+                              " magnetometer samples at devices.magnetometer.rate_hz");
+  st.check_unknown();
   dev.check_unknown();
 
   Table cal = top.sub("calibration");
@@ -361,6 +405,7 @@ Config parse_config(const std::string& text, const std::string& source) {
   cal.number_or_nan("reference_field_nT", &cc.reference_field_nT, 1000, 200000);
   cal.boolean("solve_on_worker", &cc.solve_on_worker);
   cal.check_unknown();
+  c.scalar.align.fallback_nT = cc.reference_field_nT;
 
   Table sim = top.sub("sim");
   sim.one_of("scenario", &c.sim.scenario, {"li2023", "survey"});

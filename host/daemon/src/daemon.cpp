@@ -149,6 +149,7 @@ int Daemon::run() {
       sd_notify(0, "READY=1\nSTATUS=reload refused: invalid configuration");
     }
   }
+  devices_->flush(*this);
   flush_raw_batch();
   spdlog::info("stopping ({} samples)", mag_events_);
   ep_->flush();  // the samples still inside the fusion horizon get their records
@@ -239,6 +240,7 @@ void Daemon::event(const magvec_lcm::pipeline_event& e) {
 void Daemon::open_session(const Config& config, bool first) {
   // The previous session's pending samples go out on its publisher and channel, fed to its
   // pipeline before the new session's events.
+  if (devices_) devices_->flush(*this);
   if (publisher_) flush_raw_batch();
   auto publisher = std::make_unique<LcmPublisher>(config.lcm.url, config.lcm.channels.output);
   auto commands =

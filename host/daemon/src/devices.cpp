@@ -8,6 +8,7 @@
 #include <utility>
 
 #include "magvec/drivers/ads131_fluxgate.hpp"
+#include "magvec/drivers/g882.hpp"
 #include "magvec/drivers/linux/gpiod_data_ready_line.hpp"
 #include "magvec/drivers/linux/linux_clock.hpp"
 #include "magvec/drivers/linux/socketcan_bus.hpp"
@@ -35,6 +36,8 @@ class SimDevices final : public Devices {
         t0_us_(now_()) {
     if (front_.init() != hal::Status::kOk)
       throw DaemonError(kExitDevice, "simulated ADC did not initialise");
+    if (c.scalar.enabled)
+      spdlog::info("devices.scalar is for real devices: the simulated rig supplies F");
   }
 
   bool poll(EventHandler& h, std::uint32_t max_wait_us) override {
@@ -120,7 +123,7 @@ class SimDevices final : public Devices {
 
 class RealDevices final : public Devices {
  public:
-  RealDevices(const Config& c, WaitFn wait)
+  RealDevices(const Config& c, WaitFn wait, hal::AttitudeSource* ins_override)
       : reference_nT_(c.calibration.reference_field_nT), wait_(std::move(wait)) {
     drivers::OsError err;
     const auto& m = c.magnetometer;
@@ -155,6 +158,49 @@ class RealDevices final : public Devices {
           m.serial_latency_us);
       mag_ = serial_mag_.get();
     }
+    if (ins_override != nullptr) {
+      ins_ = ins_override;
+    } else {
+      open_can(c);
+    }
+    if (c.scalar.enabled) {
+      drivers::SerialConfig sc;
+      sc.device = c.scalar.device;
+      sc.baud = c.scalar.baud;
+      sc.reconnect_interval_ms = c.scalar.reconnect_ms;
+      scalar_port_ = drivers::TermiosSerialPort::open(sc, &err);
+      if (!scalar_port_)
+        throw DaemonError(kExitDevice, "scalar magnetometer serial port: " + err.message);
+      scalar_ = std::make_unique<drivers::SerialScalarSource>(
+          *scalar_port_, clock_, drivers::G882LineDecoder(c.scalar.line), c.scalar.latency_us);
+      feed_ = std::make_unique<DeviceFeed>(*mag_, *ins_, *scalar_, c.scalar.align);
+    } else {
+      feed_ = std::make_unique<DeviceFeed>(*mag_, *ins_, reference_nT_);
+    }
+    describe_ = (m.link == "spi" ? "ADS131M04 on " + m.spi_device + " (DRDY " + m.drdy_chip +
+                                       " line " + std::to_string(m.drdy_line) + ")"
+                                 : "serial fluxgate on " + m.serial_device) +
+                ", SBG INS on " +
+                (ins_override != nullptr ? "(given source)" : c.ins.can_interface) +
+                (c.scalar.enabled ? ", G-882 scalar magnetometer on " + c.scalar.device : "");
+  }
+
+  ~RealDevices() override {
+    if (const pipeline::ScalarAlignerCounters* a = feed_->aligner_counters()) {
+      const hal::ScalarCounters& sc = scalar_->counters();
+      spdlog::info(
+          "scalar magnetometer: {} readings ({} malformed, {} out of range, {} overflows, {} "
+          "garbage bytes, {} low signal, {} bus errors); F interpolated for {} samples, nearest "
+          "reading {}, fallback {}, released by the horizon {}",
+          sc.samples, sc.malformed, sc.out_of_range, sc.overflows, sc.garbage_bytes, sc.low_signal,
+          sc.bus_errors, a->interpolated, a->nearest, a->fallback, a->expired);
+    }
+  }
+
+  void flush(EventHandler& h) override { feed_->flush(h); }
+
+  void open_can(const Config& c) {
+    drivers::OsError err;
     drivers::SocketCanConfig cc;
     cc.interface = c.ins.can_interface;
     for (const std::uint32_t id :
@@ -171,12 +217,8 @@ class RealDevices final : public Devices {
     if (!can_) throw DaemonError(kExitDevice, "INS CAN bus: " + err.message);
     drivers::sbg::DecoderConfig dc;
     dc.ids = c.ins.ids;
-    ins_ = std::make_unique<drivers::sbg::CanAttitudeSource>(*can_, dc);
-    feed_ = std::make_unique<DeviceFeed>(*mag_, *ins_, reference_nT_);
-    describe_ = (m.link == "spi" ? "ADS131M04 on " + m.spi_device + " (DRDY " + m.drdy_chip +
-                                       " line " + std::to_string(m.drdy_line) + ")"
-                                 : "serial fluxgate on " + m.serial_device) +
-                ", SBG INS on " + c.ins.can_interface;
+    can_ins_ = std::make_unique<drivers::sbg::CanAttitudeSource>(*can_, dc);
+    ins_ = can_ins_.get();
   }
 
   // DeviceFeed (device_feed.hpp): every INS sample as soon as it has been received, before the
@@ -203,7 +245,10 @@ class RealDevices final : public Devices {
   std::unique_ptr<drivers::TermiosSerialPort> serial_;
   std::unique_ptr<drivers::SerialFluxgate<drivers::AsciiLineDecoder>> serial_mag_;
   std::unique_ptr<drivers::SocketCanBus> can_;
-  std::unique_ptr<drivers::sbg::CanAttitudeSource> ins_;
+  std::unique_ptr<drivers::sbg::CanAttitudeSource> can_ins_;
+  hal::AttitudeSource* ins_{nullptr};
+  std::unique_ptr<drivers::TermiosSerialPort> scalar_port_;
+  std::unique_ptr<drivers::SerialScalarSource> scalar_;
   hal::MagnetometerSource* mag_{nullptr};
   std::unique_ptr<DeviceFeed> feed_;
   std::string describe_;
@@ -215,8 +260,8 @@ std::unique_ptr<Devices> open_sim_devices(const Config& c, WaitFn wait, NowFn no
   return std::make_unique<SimDevices>(c, std::move(wait), std::move(now));
 }
 
-std::unique_ptr<Devices> open_real_devices(const Config& c, WaitFn wait) {
-  return std::make_unique<RealDevices>(c, std::move(wait));
+std::unique_ptr<Devices> open_real_devices(const Config& c, WaitFn wait, hal::AttitudeSource* ins) {
+  return std::make_unique<RealDevices>(c, std::move(wait), ins);
 }
 
 }  // namespace magvec::host::daemon

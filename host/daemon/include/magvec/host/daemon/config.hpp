@@ -14,7 +14,9 @@
 #include <string>
 
 #include "magvec/drivers/ads131_fluxgate.hpp"
+#include "magvec/drivers/g882.hpp"
 #include "magvec/drivers/sbg_can.hpp"
+#include "magvec/pipeline/scalar_aligner.hpp"
 
 namespace magvec::host::daemon {
 
@@ -61,6 +63,20 @@ struct InsConfig {
   double time_offset_s{std::numeric_limits<double>::quiet_NaN()};
   bool require_attitude_valid{true};
   drivers::sbg::CanIds ids{};
+};
+
+// A total-field magnetometer on a serial line (real mode): each magnetometer sample takes the
+// scalar reading at its own time as F (pipeline::ScalarAligner); calibration.reference_field_nT
+// is then only the fallback for samples without a reading near them.
+struct ScalarConfig {
+  bool enabled{false};
+  std::string format{"g882"};  // Geometrics G-882 ASCII output (drivers/codecs g882.hpp)
+  std::string device{"/dev/ttyUSB1"};
+  std::uint32_t baud{9600};
+  std::uint32_t reconnect_ms{1000};
+  std::uint32_t latency_us{50'000};  // subtracted from line receive times
+  drivers::G882LineConfig line{};
+  pipeline::ScalarAlignerConfig align{};  // fallback_nT: calibration.reference_field_nT
 };
 
 struct CalibrationConfig {
@@ -119,6 +135,9 @@ struct LcmConfig {
   LcmChannels channels{};
 };
 
+// Magnetometer samples the scalar aligner holds (devices.scalar.horizon_us at the rate must fit).
+inline constexpr std::size_t kScalarQueueSamples = 1024;
+
 // Largest lcm.raw_batch: a batch of 1000 samples is 60 kB, under one UDP datagram's 64 kB.
 inline constexpr std::uint32_t kMaxRawBatch = 1000;
 
@@ -134,6 +153,7 @@ struct Config {
   LcmConfig lcm{};
   MagnetometerConfig magnetometer{};
   InsConfig ins{};
+  ScalarConfig scalar{};
   CalibrationConfig calibration{};
   SimConfig sim{};
 };

@@ -9,13 +9,20 @@
 // INS samples later than the magnetometer sample are fed too: they cannot disturb its
 // interpolation (the buffer is ordered by time) and holding them back would leave the sample
 // without the epoch that brackets it, i.e. with a held attitude.
+// With a scalar magnetometer, its readings are drained with the INS samples and each
+// magnetometer sample goes through a pipeline::ScalarAligner, which hands it on with F at its own
+// time once the reading after it has arrived (or its horizon expired); without one, every sample
+// carries the constant reference F at once.
 // Only HAL interfaces: tests drive it with fake sources (INS late, early, in bursts).
 #pragma once
 
 #include <cstdint>
+#include <memory>
 
 #include "magvec/hal/attitude_source.hpp"
 #include "magvec/hal/magnetometer_source.hpp"
+#include "magvec/hal/scalar_source.hpp"
+#include "magvec/pipeline/scalar_aligner.hpp"
 
 namespace magvec::host::daemon {
 
@@ -27,19 +34,36 @@ enum class FeedResult : std::uint8_t {
 
 class DeviceFeed {
  public:
+  using Aligner = pipeline::ScalarAligner<64, 1024>;
+
   DeviceFeed(hal::MagnetometerSource& mag, hal::AttitudeSource& ins, double reference_nT) noexcept
       : mag_(mag), ins_(ins), reference_nT_(reference_nT) {}
+  // F from `scalar` (align.fallback_nT where it has no reading near a sample).
+  DeviceFeed(hal::MagnetometerSource& mag, hal::AttitudeSource& ins, hal::ScalarSource& scalar,
+             const pipeline::ScalarAlignerConfig& align)
+      : mag_(mag),
+        ins_(ins),
+        reference_nT_(align.fallback_nT),
+        scalar_(&scalar),
+        aligner_(std::make_unique<Aligner>(align)) {}
 
   // Handler: on_attitude(const hal::AttitudeSample&), on_magnetometer(const
   // hal::MagnetometerSample&, double f_ref_nT), on_read_error(hal::Status).
   template <typename Handler>
   FeedResult poll(Handler& h, std::uint32_t max_wait_us) {
     drain_ins(h);
+    drain_scalar(h);
     hal::MagnetometerSample s;
     const hal::Status st = mag_.read(s, max_wait_us);
     drain_ins(h);
+    drain_scalar(h);
     if (st == hal::Status::kOk) {
-      h.on_magnetometer(s, reference_nT_);
+      if (aligner_) {
+        aligner_->on_magnetometer(
+            s, [&h](const hal::MagnetometerSample& m, double f) { h.on_magnetometer(m, f); });
+      } else {
+        h.on_magnetometer(s, reference_nT_);
+      }
       return FeedResult::kSample;
     }
     if (st == hal::Status::kTimeout || st == hal::Status::kNoData) return FeedResult::kIdle;
@@ -47,7 +71,40 @@ class DeviceFeed {
     return FeedResult::kError;
   }
 
+  // The samples still waiting for a scalar reading, with what F they can get now.
+  template <typename Handler>
+  void flush(Handler& h) {
+    if (aligner_) {
+      aligner_->flush(
+          [&h](const hal::MagnetometerSample& m, double f) { h.on_magnetometer(m, f); });
+    }
+  }
+  // nullptr without a scalar magnetometer.
+  const pipeline::ScalarAlignerCounters* aligner_counters() const noexcept {
+    return aligner_ ? &aligner_->counters() : nullptr;
+  }
+  // Scalar lines the source rejected (its counters say why) or transport failures.
+  std::uint64_t scalar_read_errors() const noexcept { return scalar_read_errors_; }
+
  private:
+  // Every reading received so far; rejected lines are counted by the source (and here), a
+  // transport failure ends the drain (the port reconnects on later reads).
+  template <typename Handler>
+  void drain_scalar(Handler& h) {
+    if (scalar_ == nullptr) return;
+    hal::ScalarSample r;
+    for (int guard = 0; guard < kMaxPerDrain; ++guard) {
+      const hal::Status st = scalar_->read(r, 0);
+      if (st == hal::Status::kOk) {
+        aligner_->on_scalar(
+            r, [&h](const hal::MagnetometerSample& m, double f) { h.on_magnetometer(m, f); });
+        continue;
+      }
+      if (st == hal::Status::kTimeout || st == hal::Status::kNoData) return;
+      ++scalar_read_errors_;
+      if (st == hal::Status::kBusError) return;
+    }
+  }
   template <typename Handler>
   void drain_ins(Handler& h) {
     hal::AttitudeSample a;
@@ -59,6 +116,9 @@ class DeviceFeed {
   hal::MagnetometerSource& mag_;
   hal::AttitudeSource& ins_;
   double reference_nT_;
+  hal::ScalarSource* scalar_{nullptr};
+  std::unique_ptr<Aligner> aligner_;
+  std::uint64_t scalar_read_errors_{0};
 };
 
 }  // namespace magvec::host::daemon

@@ -2,7 +2,8 @@
 //   - SimDevices (--sim): the simulated rig (drivers/sim SimRig) read through the real drivers
 //     (hil::SimFrontEnd), one step per magnetometer period, paced on a clock;
 //   - RealDevices: the Linux transports (spidev + libgpiod DRDY ADS131M04, or a termios serial
-//     fluxgate; SocketCAN SBG INS), time-ordered by DeviceFeed (device_feed.hpp).
+//     fluxgate; SocketCAN SBG INS; optionally a termios scalar magnetometer whose reading is F),
+//     time-ordered by DeviceFeed (device_feed.hpp).
 // Waiting is done through a callback so that the daemon serves its commands meanwhile.
 #pragma once
 
@@ -38,6 +39,8 @@ class Devices {
   // Produces the events due now, waiting at most max_wait_us (through the WaitFn). false when the
   // source has ended (simulated scenario over).
   virtual bool poll(EventHandler& h, std::uint32_t max_wait_us) = 0;
+  // Hands on the samples still held (waiting for a scalar reading) before the devices close.
+  virtual void flush(EventHandler& /*h*/) {}
   virtual const hal::MagCounters& mag_counters() const = 0;
   virtual const hal::AttitudeCounters& attitude_counters() const = 0;
   virtual std::string describe() const = 0;
@@ -49,6 +52,8 @@ class Devices {
 // process does not replay the backlog at full speed). Throws DaemonError(kExitDevice).
 std::unique_ptr<Devices> open_sim_devices(const Config& c, WaitFn wait, NowFn now);
 // The real devices of `c`. Throws DaemonError(kExitDevice) naming the device that failed.
-std::unique_ptr<Devices> open_real_devices(const Config& c, WaitFn wait);
+// `ins`, when given, is read instead of the configured CAN bus (tests on hosts without SocketCAN).
+std::unique_ptr<Devices> open_real_devices(const Config& c, WaitFn wait,
+                                           hal::AttitudeSource* ins = nullptr);
 
 }  // namespace magvec::host::daemon

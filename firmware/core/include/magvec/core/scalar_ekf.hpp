@@ -43,6 +43,7 @@
 #include "magvec/core/ellipsoid_fit.hpp"
 #include "magvec/core/sensor_model.hpp"
 #include "magvec/core/types.hpp"
+#include "magvec/core/ud_factor.hpp"
 
 namespace magvec::core {
 
@@ -372,15 +373,7 @@ class ScalarEkf {
     return t.asDiagonal() * p * t.asDiagonal();
   }
   StateVec sigma() const noexcept {
-    // diag(U D U^T)_i = sum_j U_ij^2 D_j (j >= i)
-    StateVec s;
-    for (int i = 0; i < kN; ++i) {
-      Scalar acc{0};
-      for (int j = i; j < kN; ++j)
-        acc += u_(i, j) * u_(i, j) * d_(j);
-      s(i) = std::sqrt(std::max(acc, Scalar(0)));
-    }
-    return s.cwiseProduct(unit_scale());
+    return ud_variances<Scalar, kN>(u_, d_).cwiseSqrt().cwiseProduct(unit_scale());
   }
 
   // Calibrated intensity |C^-1 (m - b)| [nT] and its predicted 1-sigma from the parameter
@@ -511,72 +504,23 @@ class ScalarEkf {
     initialised_ = d_.allFinite() && (d_.array() > 0).all();
   }
 
-  // All of U finite. Only the strict upper triangle can change (the diagonal stays 1, the lower
-  // triangle 0: Bierman, Agee-Turner and ud_factorise write i < j only), and v * 0 is 0 for a
-  // finite v but NaN for inf/NaN: an exact test at one multiply-add per element, a third of the
-  // cost of allFinite() over all 144 elements on the per-sample path.
-  bool u_upper_finite() const noexcept {
-    Scalar probe{0};
-    for (int j = 1; j < kN; ++j)
-      for (int i = 0; i < j; ++i)
-        probe += u_(i, j) * Scalar(0);
-    return probe == Scalar(0);
-  }
+  // All of U finite (ud_factor.hpp: a third of the cost of allFinite() on the per-sample path).
+  bool u_upper_finite() const noexcept { return ud_upper_finite<Scalar, kN>(u_); }
 
   // U^T h for the unit upper triangular U: 66 multiply-adds instead of the 144 of a full product
-  // (per sample, twice: the update and the loop's intensity sigma). Same terms, summed in order.
-  StateVec ut_times(const StateVec& h) const noexcept {
-    StateVec f;
-    for (int j = 0; j < kN; ++j) {
-      Scalar acc = h(j);
-      for (int i = 0; i < j; ++i)
-        acc += u_(i, j) * h(i);
-      f(j) = acc;
-    }
-    return f;
-  }
+  // (per sample, twice: the update and the loop's intensity sigma).
+  StateVec ut_times(const StateVec& h) const noexcept { return ud_ut_times<Scalar, kN>(u_, h); }
 
   // ---- covariance factor updates ----------------------------------------------------------------
   // Agee-Turner: U D U^T + c e_k e_k^T for c > 0, O(k^2).
   void add_diagonal_noise(int k, Scalar c) noexcept {
-    StateVec a = StateVec::Zero();
-    a(k) = Scalar(1);
-    for (int j = k; j > 0; --j) {
-      const Scalar s = a(j);
-      const Scalar dj = d_(j) + c * s * s;
-      const Scalar beta = c * s / dj;
-      c = c * d_(j) / dj;
-      d_(j) = dj;
-      for (int i = 0; i < j; ++i) {
-        a(i) -= s * u_(i, j);
-        u_(i, j) += beta * a(i);
-      }
-    }
-    d_(0) += c * a(0) * a(0);
+    ud_add_diagonal_noise<Scalar, kN>(u_, d_, k, c);
   }
 
   // Bierman's scalar update of U, D for a measurement with f = U^T h^T and variance r. Returns the
   // unnormalised gain k (K = k / s) and the innovation variance s = h P h^T + r.
   void bierman(const StateVec& f, Scalar r, StateVec* k_out, Scalar* s_out) noexcept {
-    const StateVec v = d_.cwiseProduct(f);
-    StateVec k = StateVec::Zero();
-    Scalar alpha = r + f(0) * v(0);
-    d_(0) *= r / alpha;
-    k(0) = v(0);
-    for (int j = 1; j < kN; ++j) {
-      const Scalar beta = alpha;
-      alpha += f(j) * v(j);
-      const Scalar lambda = -f(j) / beta;
-      d_(j) *= beta / alpha;
-      for (int i = 0; i < j; ++i) {
-        const Scalar uij = u_(i, j);
-        u_(i, j) = uij + lambda * k(i);
-        k(i) += v(j) * uij;
-      }
-      k(j) = v(j);
-    }
-    *k_out = k;
-    *s_out = alpha;
+    ud_bierman_update<Scalar, kN>(u_, d_, f, r, k_out, s_out);
   }
 
   // ---- noise estimate from the innovations -----------------------------------------------------
@@ -1093,24 +1037,7 @@ class ScalarEkf {
 
   // P = U D U^T with U unit upper triangular. False unless P is positive definite.
   bool ud_factorise(const StateMat& p) noexcept {
-    StateMat u = StateMat::Identity();
-    StateVec d = StateVec::Zero();
-    for (int j = kN - 1; j >= 0; --j) {
-      Scalar dj = p(j, j);
-      for (int k = j + 1; k < kN; ++k)
-        dj -= d(k) * u(j, k) * u(j, k);
-      if (!(dj > 0)) return false;
-      d(j) = dj;
-      for (int i = 0; i < j; ++i) {
-        Scalar a = p(i, j);
-        for (int k = j + 1; k < kN; ++k)
-          a -= d(k) * u(i, k) * u(j, k);
-        u(i, j) = a / dj;
-      }
-    }
-    u_ = u;
-    d_ = d;
-    return true;
+    return core::ud_factorise<Scalar, kN>(p, &u_, &d_);
   }
 
   Config cfg_{};

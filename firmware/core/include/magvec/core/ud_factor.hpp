@@ -1,0 +1,121 @@
+// U-D covariance factor P = U D U^T (U unit upper triangular, D diagonal) and its updates, shared
+// by the filters (the scalar EKF and the vector calibration filter): Bierman's scalar measurement
+// update and the Agee-Turner rank-one update (G. J. Bierman, "Factorization Methods for Discrete
+// Sequential Estimation", 1977; docs/equations.md references). Fixed size N, no heap; every loop
+// touches the strict upper triangle of U only, so its diagonal stays 1 and its lower triangle 0.
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+
+#include "magvec/core/types.hpp"
+
+namespace magvec::core {
+
+// U^T h: N(N-1)/2 multiply-adds instead of the N^2 of a full product (per sample, in every update).
+template <typename Scalar, int N>
+Vec<Scalar, N> ud_ut_times(const Mat<Scalar, N, N>& u, const Vec<Scalar, N>& h) noexcept {
+  Vec<Scalar, N> f;
+  for (int j = 0; j < N; ++j) {
+    Scalar acc = h(j);
+    for (int i = 0; i < j; ++i)
+      acc += u(i, j) * h(i);
+    f(j) = acc;
+  }
+  return f;
+}
+
+// All of U finite, tested on the strict upper triangle only (the rest never changes): v * 0 is 0
+// for a finite v but NaN for inf/NaN, an exact test at one multiply-add per element.
+template <typename Scalar, int N>
+bool ud_upper_finite(const Mat<Scalar, N, N>& u) noexcept {
+  Scalar probe{0};
+  for (int j = 1; j < N; ++j)
+    for (int i = 0; i < j; ++i)
+      probe += u(i, j) * Scalar(0);
+  return probe == Scalar(0);
+}
+
+// diag(U D U^T)_i = sum_{j >= i} U_ij^2 D_j.
+template <typename Scalar, int N>
+Vec<Scalar, N> ud_variances(const Mat<Scalar, N, N>& u, const Vec<Scalar, N>& d) noexcept {
+  Vec<Scalar, N> v;
+  for (int i = 0; i < N; ++i) {
+    Scalar acc{0};
+    for (int j = i; j < N; ++j)
+      acc += u(i, j) * u(i, j) * d(j);
+    v(i) = std::max(acc, Scalar(0));
+  }
+  return v;
+}
+
+// Agee-Turner: U D U^T + c e_k e_k^T for c > 0, O(k^2).
+template <typename Scalar, int N>
+void ud_add_diagonal_noise(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, int k, Scalar c) noexcept {
+  Vec<Scalar, N> a = Vec<Scalar, N>::Zero();
+  a(k) = Scalar(1);
+  for (int j = k; j > 0; --j) {
+    const Scalar s = a(j);
+    const Scalar dj = d(j) + c * s * s;
+    const Scalar beta = c * s / dj;
+    c = c * d(j) / dj;
+    d(j) = dj;
+    for (int i = 0; i < j; ++i) {
+      a(i) -= s * u(i, j);
+      u(i, j) += beta * a(i);
+    }
+  }
+  d(0) += c * a(0) * a(0);
+}
+
+// Bierman's scalar update of U, D for a measurement with f = U^T h^T and variance r. Returns the
+// unnormalised gain k (K = k / s) and the innovation variance s = h P h^T + r.
+template <typename Scalar, int N>
+void ud_bierman_update(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, const Vec<Scalar, N>& f, Scalar r,
+                       Vec<Scalar, N>* k_out, Scalar* s_out) noexcept {
+  const Vec<Scalar, N> v = d.cwiseProduct(f);
+  Vec<Scalar, N> k = Vec<Scalar, N>::Zero();
+  Scalar alpha = r + f(0) * v(0);
+  d(0) *= r / alpha;
+  k(0) = v(0);
+  for (int j = 1; j < N; ++j) {
+    const Scalar beta = alpha;
+    alpha += f(j) * v(j);
+    const Scalar lambda = -f(j) / beta;
+    d(j) *= beta / alpha;
+    for (int i = 0; i < j; ++i) {
+      const Scalar uij = u(i, j);
+      u(i, j) = uij + lambda * k(i);
+      k(i) += v(j) * uij;
+    }
+    k(j) = v(j);
+  }
+  *k_out = k;
+  *s_out = alpha;
+}
+
+// P = U D U^T. False (u, d untouched) unless P is positive definite.
+template <typename Scalar, int N>
+bool ud_factorise(const Mat<Scalar, N, N>& p, Mat<Scalar, N, N>* u_out,
+                  Vec<Scalar, N>* d_out) noexcept {
+  Mat<Scalar, N, N> u = Mat<Scalar, N, N>::Identity();
+  Vec<Scalar, N> d = Vec<Scalar, N>::Zero();
+  for (int j = N - 1; j >= 0; --j) {
+    Scalar dj = p(j, j);
+    for (int k = j + 1; k < N; ++k)
+      dj -= d(k) * u(j, k) * u(j, k);
+    if (!(dj > Scalar(0))) return false;
+    d(j) = dj;
+    for (int i = 0; i < j; ++i) {
+      Scalar a = p(i, j);
+      for (int k = j + 1; k < N; ++k)
+        a -= d(k) * u(i, k) * u(j, k);
+      u(i, j) = a / dj;
+    }
+  }
+  *u_out = u;
+  *d_out = d;
+  return true;
+}
+
+}  // namespace magvec::core

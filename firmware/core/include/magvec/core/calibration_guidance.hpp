@@ -21,6 +21,7 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <cstdlib>
 
 #include "magvec/core/coverage.hpp"
 #include "magvec/core/frames.hpp"
@@ -125,8 +126,9 @@ inline int wrap360(int deg) noexcept {
 
 }  // namespace guidance_detail
 
-// The guidance for one moment of a calibration. Cheap enough for a display rate (17 tilts x 24
-// headings of one rotation and one cell lookup each), not meant for every sample.
+// The guidance for one moment of a calibration. Cheap enough for a display rate (at most 19 tilts
+// x 24 headings of one rotation and one cell lookup each, ~35 us on the host), not meant for every
+// sample.
 template <typename Scalar>
 Guidance<Scalar> calibration_guidance(const GuidanceInput<Scalar>& in) noexcept {
   using guidance_detail::fraction;

@@ -19,9 +19,10 @@
 //   end         CR LF (a lone LF is accepted)
 // The format has no checksum: integrity rests on the fixed layout, which the decoder checks
 // character by character (crc_errors stays 0 for this format). The Julian clock is not used: the
-// host time stamps the line (receive time minus latency_us; the reading itself is an average over
-// the cycle before the line, so the latency should be about half a cycle plus the line's
-// transmission time, 18.75 ms for the 18 characters of a one-channel line at 9600 baud 8N1).
+// host time stamps the line (receive time minus latency_us; assumed, not documented: the reading
+// is an average over the cycle before the line, so the latency should be about half a cycle plus
+// the line's transmission time, 18.75 ms for the 18 characters of a one-channel line at 9600
+// baud 8N1).
 // Range: the G-882 specification gives an operating range of 17,000 to 100,000 nT; a well-formed
 // reading outside [min_field_nT, max_field_nT] is counted as out of range and rejected. What the
 // counter prints while the sensor is in a dead zone is not documented on those pages; a low

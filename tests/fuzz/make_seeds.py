@@ -55,6 +55,17 @@ put("serial_ascii", "bad-lines",
 put("serial_ascii", "no-start",
     bytes([0x04 | 0x20, 0, 2, 0, 1, 0]) + b"-2.5 40.125 1.5e1\r\n\r\n7 8 9\n1 2 3*00\n")
 
+# G-882 lines of g882_test.cpp: config '$', one analog channel, no Julian clock, no signal
+# threshold; then three channels + Julian clock; then a signal threshold of 520 counts.
+put("g882", "manual-lines",
+    bytes([0 | (1 << 3), 0]) + b"$ 48123.456,0721\r\n$100001.250,9999\n$ 17000.000,0000\r\n")
+put("g882", "bad-lines",
+    bytes([0 | (1 << 3), 0]) + b"noise\r\n$ 48123.45x,0721\r\n$ 12000.000,0721\r\n"
+    b"$ 4812$ 48123.456,0721\r\n$ 48123.456" + b"9" * 80 + b"\r\n$ 48200.000,0800\r\n")
+put("g882", "channels-julian",
+    bytes([4 | (3 << 3), 13]) + b"$ 54369.127,1234,5678,0000\r\n$ 54369.127,0499,0,0\r\n"
+    b"$ 48123.456,0721,5678,0000,D123H04M05S06_78\r\n$ 48123.456,0721,5678,0000,H04M05\r\n")
+
 # HMR2300 records of the datasheet test, garbage, the lock-loss regression stream.
 rec1 = bytes([0x3A, 0x98, 0xE2, 0xB4, 0x75, 0x30, 0x0D])
 rec2 = bytes([0x8A, 0xD0, 0x00, 0x00, 0xC3, 0x74, 0x0D])

@@ -41,6 +41,17 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   FUZZ_CHECK(
       std::isnan(c.calibration.reference_field_nT) ||
       (c.calibration.reference_field_nT >= 1000 && c.calibration.reference_field_nT <= 200000));
+  const ScalarConfig& sc = c.scalar;
+  FUZZ_CHECK(sc.format == "g882" && !sc.device.empty() && sc.baud >= 300 && sc.baud <= 4'000'000);
+  FUZZ_CHECK(sc.line.preamble > ' ' && sc.line.preamble <= '~' &&
+             (sc.line.preamble < '0' || sc.line.preamble > '9'));
+  FUZZ_CHECK(sc.line.analog_channels <= 8 && sc.line.min_signal <= 9999);
+  FUZZ_CHECK(sc.line.min_field_nT >= 0 && sc.line.min_field_nT < sc.line.max_field_nT &&
+             sc.line.max_field_nT < 200000);
+  FUZZ_CHECK(!sc.enabled || sc.align.horizon_us * c.magnetometer.rate_hz * 1e-6 <=
+                                static_cast<double>(kScalarQueueSamples));
+  FUZZ_CHECK(std::isnan(sc.align.fallback_nT) ||
+             sc.align.fallback_nT == c.calibration.reference_field_nT);
   const Config again = parse_config(text, "fuzz.toml");
   FUZZ_CHECK(again.lcm.url == c.lcm.url && again.daemon.state_dir == c.daemon.state_dir);
   FUZZ_CHECK(again.magnetometer.adc.nT_per_volt == c.magnetometer.adc.nT_per_volt);

@@ -204,7 +204,7 @@ TEST_F(ScalarPty, CalibratesAndValidatesAgainstTheTimeAlignedScalarField) {
   const double rms_nearest = std::sqrt(ss_nearest / static_cast<double>(n_aligned));
   EXPECT_GT(f_max - f_min, 19.0);  // the field did change
   // Interpolated at the sample's time: the scalar noise (2 pT), the line's 1 pT, the curvature
-  // over 100 ms between readings and the pacing jitter of this shared machine.
+  // over 100 ms between readings and the pacing jitter of a loaded machine.
   EXPECT_LT(rms_aligned, 0.05) << "over " << n_aligned << " samples";
   EXPECT_LT(rms_aligned, rms_nearest / 4) << rms_nearest;
   std::printf(

@@ -34,10 +34,12 @@ struct SimSample {
   double temp_degC;
 };
 
-// Smooth tumbling manoeuvre (Li Euler angles), rates up to ~1.5 rad/s, tilts up to ~30 deg.
+// Smooth calibration manoeuvre (Li Euler angles): turning at ~1 rad/s while pitching and rolling
+// by up to 40/35 deg with periods of 5-6 s, so the field directions are covered within a few
+// seconds; rates up to ~2.5 rad/s.
 Mat3<double> manoeuvre(double t) {
-  return r_bn_from_li(LiEuler<double>{0.6 * t + 0.8 * std::sin(0.37 * t), 0.5 * std::sin(0.9 * t),
-                                      0.45 * std::sin(0.7 * t + 1.0)});
+  return r_bn_from_li(LiEuler<double>{1.0 * t + 0.8 * std::sin(0.37 * t), 0.7 * std::sin(1.3 * t),
+                                      0.6 * std::sin(1.1 * t + 1.0)});
 }
 Vec3<double> manoeuvre_rate_n(double t) {
   const double h = 1e-5;
@@ -266,6 +268,401 @@ TEST(VectorCalibrationFilter, NoiseFreeFloatReachesFloatResolution) {
   EXPECT_LT(worst[3], 1e-6);
   EXPECT_LT(worst[4], 1e-3);
   EXPECT_LT(worst[5], 5e-3);  // measured 1.9e-3: 0.01 nT over the 20 degC ramp
+}
+
+// ---- 2. one pass against the batch one-step fit ----------------------------------------------
+// Monte Carlo accumulators: RMS errors of the filter and of the batch fit on the same data, and
+// the filter's reported 1-sigma against its own scatter.
+struct Comparison {
+  static constexpr int kLi = 12;  // ks 3, O 3, Kof 3, Rm angles 3
+  std::array<double, kLi> ss_filter{}, ss_batch{};
+  Vec3<double> enu_ss_filter = Vec3<double>::Zero(), enu_ss_batch = Vec3<double>::Zero();
+  double f_ss_filter = 0, f_ss_batch = 0;
+  long enu_n = 0;
+  std::vector<Vec<double, 19>> state_err, state_sd;
+  int runs = 0;
+
+  static std::array<double, kLi> li_vector(const LiParams<double>& p) {
+    std::array<double, kLi> v{};
+    for (int k = 0; k < 3; ++k) {
+      v[static_cast<std::size_t>(k)] = p.ks(k);
+      v[static_cast<std::size_t>(3 + k)] = p.o_rad(k);
+      v[static_cast<std::size_t>(6 + k)] = p.kof(k);
+      v[static_cast<std::size_t>(9 + k)] = p.rm_rad(k);
+    }
+    return v;
+  }
+  // Parameter-induced errors: the estimated model applied to the noise-free samples.
+  static void induced(const SensorModel<double>& m, const std::vector<SimSample>& data,
+                      Vec3<double>* enu_ss, double* f_ss) {
+    const Mat3<double> rmt = m.rm_matrix().transpose();
+    for (const SimSample& s : data) {
+      const Vec3<double> hs = m.w * (s.m_true - m.o);
+      const Vec3<double> e = s.r_true.transpose() * (rmt * hs) - s.h_n;
+      *enu_ss += e.cwiseProduct(e);
+      const double ef = hs.norm() - s.h_n.norm();
+      *f_ss += ef * ef;
+    }
+  }
+  void add(const Truth& tr, const std::vector<SimSample>& data, const Filter<double>& f,
+           const BatchResult<double>& b) {
+    LiParams<double> lf;
+    ASSERT_EQ(to_li(f.model(), &lf), ConversionStatus::kOk);
+    const auto t = li_vector(tr.li), vf = li_vector(lf), vb = li_vector(b.li);
+    for (std::size_t k = 0; k < static_cast<std::size_t>(kLi); ++k) {
+      ss_filter[k] += (vf[k] - t[k]) * (vf[k] - t[k]);
+      ss_batch[k] += (vb[k] - t[k]) * (vb[k] - t[k]);
+    }
+    induced(f.model(), data, &enu_ss_filter, &f_ss_filter);
+    induced(b.model, data, &enu_ss_batch, &f_ss_batch);
+    enu_n += static_cast<long>(data.size());
+    state_err.push_back(state_errors(f, tr, data.back().h_n));
+    state_sd.push_back(state_sigmas(f));
+    ++runs;
+  }
+  // Filter RMS over batch RMS for every Li parameter, E/N/U and |h|; the worst is returned.
+  double report_and_check(double limit) const {
+    static const char* names[kLi] = {"ks_x",  "ks_y",  "ks_z",  "O1", "O2", "O3",
+                                     "Kof_x", "Kof_y", "Kof_z", "am", "bm", "gm"};
+    double worst = 0;
+    for (std::size_t k = 0; k < static_cast<std::size_t>(kLi); ++k) {
+      const double rf = std::sqrt(ss_filter[k] / runs), rb = std::sqrt(ss_batch[k] / runs);
+      const double unit = k < 3 ? 1e-2 : (k < 6 || k >= 9 ? kDeg : 1.0);
+      std::printf("  %-6s RMS error filter %.3e batch %.3e %s  ratio %.3f\n", names[k], rf / unit,
+                  rb / unit, k < 3 ? "%" : (k < 6 || k >= 9 ? "deg" : "nT"), rf / rb);
+      EXPECT_LT(rf, limit * rb) << names[k];
+      worst = std::max(worst, rf / rb);
+    }
+    for (int c = 0; c < 3; ++c) {
+      const double rf = std::sqrt(enu_ss_filter(c) / static_cast<double>(enu_n));
+      const double rb = std::sqrt(enu_ss_batch(c) / static_cast<double>(enu_n));
+      std::printf("  %c      induced RMS filter %.3f nT batch %.3f nT  ratio %.3f\n", "ENU"[c], rf,
+                  rb, rf / rb);
+      EXPECT_LT(rf, limit * rb) << "ENU " << c;
+      worst = std::max(worst, rf / rb);
+    }
+    const double rf = std::sqrt(f_ss_filter / static_cast<double>(enu_n));
+    const double rb = std::sqrt(f_ss_batch / static_cast<double>(enu_n));
+    std::printf("  |h|    induced RMS filter %.4f nT batch %.4f nT  ratio %.3f\n", rf, rb, rf / rb);
+    EXPECT_LT(rf, limit * rb) << "|h|";
+    return std::max(worst, rf / rb);
+  }
+  // Reported 1-sigma (RMS over runs) against the RMS error over runs, per state.
+  double check_sigmas(const std::vector<int>& states, double tolerance) const {
+    double worst = 0;
+    for (int k : states) {
+      double se = 0, ss = 0;
+      for (int r = 0; r < runs; ++r) {
+        se += state_err[static_cast<std::size_t>(r)](k) * state_err[static_cast<std::size_t>(r)](k);
+        ss += state_sd[static_cast<std::size_t>(r)](k) * state_sd[static_cast<std::size_t>(r)](k);
+      }
+      const double ratio = std::sqrt(ss / se);
+      std::printf("  %-5s reported 1-sigma %.3e, Monte Carlo RMS error %.3e, ratio %.3f\n",
+                  kStateNames[k], std::sqrt(ss / runs), std::sqrt(se / runs), ratio);
+      EXPECT_NEAR(ratio, 1.0, tolerance) << kStateNames[k];
+      worst = std::max(worst, std::abs(ratio - 1));
+    }
+    return worst;
+  }
+};
+
+std::vector<SimSample> li_samples(const Truth& tr, std::mt19937_64& rng) {
+  const auto raw =
+      simulate(from_li(tr.li), tr.h_n, random_attitudes(60, rng), 0.3, 0.015 * kDeg, rng);
+  std::vector<SimSample> out;
+  for (const Sample& s : raw) {
+    SimSample o;
+    o.in.m_nT = s.m;
+    o.in.r_bn = s.r_meas;
+    o.in.f_nT = s.f;
+    o.m_true = s.m_true;
+    o.r_true = s.r_true;
+    o.h_n = tr.h_n;
+    o.temp_degC = 20;
+    out.push_back(o);
+  }
+  return out;
+}
+
+template <std::size_t Capacity>
+BatchResult<double> batch_fit(const std::vector<SimSample>& data) {
+  auto cal = std::make_unique<BatchCalibrator<double, Capacity>>();
+  for (const SimSample& s : data)
+    cal->add_sample(s.in.m_nT, s.in.f_nT, s.in.r_bn);
+  return cal->solve(BatchMethod::kOneStep);
+}
+
+TEST(VectorCalibrationFilter, LiSetupMatchesTheBatchOneStepFit) {
+  constexpr int kRuns = 100;
+  const Truth tr;
+  Comparison cmp;
+  for (int run_i = 0; run_i < kRuns; ++run_i) {
+    std::mt19937_64 rng(5000 + static_cast<unsigned>(run_i));
+    const auto data = li_samples(tr, rng);
+    const BatchResult<double> b = batch_fit<1024>(data);
+    ASSERT_EQ(b.verdict, Verdict::kOk) << verdict_name(b.verdict);
+    auto f = run<double>(data, VfConfig<double>{});
+    ASSERT_TRUE(f->initialised()) << "run " << run_i;
+    ASSERT_EQ(f->counters().resets, 0U);
+    cmp.add(tr, data, *f, b);
+  }
+  std::printf("Li 2023 setup, %d runs (60 random attitudes, 0.3 nT, 0.015 deg):\n", kRuns);
+  cmp.report_and_check(1.2);
+  cmp.check_sigmas({0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14}, 0.25);
+}
+
+// NOT MET (measured, 50 runs): filter/batch RMS ratios ks 1.05-1.09, O1 1.69, O2 1.03, O3 1.70,
+// Kof 1.87/0.99/1.05, am 1.35, bm 0.97, gm 1.14, E/N/U 1.19/1.17/1.18, |h| 1.48; reported 1-sigma
+// over scatter 0.67 (W10), 0.70 (W20), 0.67 (o_x), 0.85-1.21 elsewhere. The start from data loses
+// the samples passed over while collecting (about 15 % of the 20 s) and the x-axis states are
+// overconfident; targets kept at 1.2x and 25 %.
+TEST(VectorCalibrationFilter, ManoeuvreMatchesTheBatchOneStepFit) {
+  constexpr int kRuns = 50;
+  const Truth tr;
+  SimOptions o;
+  o.duration_s = 20;
+  o.mag_sigma_nT = 0.3;
+  o.att_sigma_rad = 0.015 * kDeg;
+  Comparison cmp;
+  for (int run_i = 0; run_i < kRuns; ++run_i) {
+    std::mt19937_64 rng(7000 + static_cast<unsigned>(run_i));
+    const auto data = simulate_manoeuvre(tr, o, rng);
+    const BatchResult<double> b = batch_fit<4096>(data);
+    ASSERT_EQ(b.verdict, Verdict::kOk) << verdict_name(b.verdict);
+    auto f = run<double>(data, VfConfig<double>{});
+    if (run_i == 0) print_counters(*f);
+    ASSERT_TRUE(f->initialised()) << "run " << run_i;
+    ASSERT_EQ(f->counters().resets, 0U);
+    cmp.add(tr, data, *f, b);
+  }
+  std::printf(
+      "100 Hz manoeuvre, %d runs of 20 s (0.3 nT, 0.015 deg, F given, time offset estimated):\n",
+      kRuns);
+  cmp.report_and_check(1.2);
+  cmp.check_sigmas({0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15}, 0.25);
+}
+}  // namespace
+}  // namespace magvec::core
+namespace magvec::core {
+namespace {
+
+// ---- 3. temperature, drift, field step ----------------------------------------------------------
+SimOptions noisy_manoeuvre(double duration_s) {
+  SimOptions o;
+  o.duration_s = duration_s;
+  o.mag_sigma_nT = 0.3;
+  o.att_sigma_rad = 0.015 * kDeg;
+  return o;
+}
+
+TEST(VectorCalibrationFilter, TemperatureRampRecoversTheCoefficients) {
+  Truth tr;
+  tr.tc = {0.3, -0.3, 0.3};
+  SimOptions o = noisy_manoeuvre(60);
+  o.with_temperature = true;
+  o.temp_start_degC = 15;
+  o.temp_end_degC = 35;
+  for (unsigned seed : {11U, 12U, 13U}) {
+    std::mt19937_64 rng(seed);
+    const auto data = simulate_manoeuvre(tr, o, rng);
+    VfConfig<double> cfg;
+    cfg.temperature_ref_degC = tr.t0_degC;
+    auto f = run<double>(data, cfg);
+    ASSERT_TRUE(f->initialised());
+    EXPECT_EQ(f->counters().resets, 0U);
+    const VfSigmas<double> sg = f->sigmas();
+    const Vec3<double> c = f->temperature_coefficients_nT_per_degC();
+    const Vec3<double> o_end = f->offset_nT(o.temp_end_degC);
+    const Vec3<double> o_true = tr.li.kof + tr.tc * (o.temp_end_degC - tr.t0_degC);
+    std::printf(
+        "seed %u: c = (%.4f %.4f %.4f) +- (%.4f %.4f %.4f) nT/degC, offset error at 35 degC "
+        "(%.3f %.3f %.3f) nT\n",
+        seed, c(0), c(1), c(2), sg.tc_nT_per_degC(0), sg.tc_nT_per_degC(1), sg.tc_nT_per_degC(2),
+        o_end(0) - o_true(0), o_end(1) - o_true(1), o_end(2) - o_true(2));
+    for (int k = 0; k < 3; ++k) {
+      EXPECT_LT(std::abs(c(k) - tr.tc(k)), 3 * sg.tc_nT_per_degC(k)) << k;
+      EXPECT_LT(std::abs(o_end(k) - o_true(k)), 1.0) << k;
+    }
+  }
+}
+
+// 300 nT over 10 minutes (0.5 nT/s), with a 1 nT/sqrt(s) random walk on the offset.
+TEST(VectorCalibrationFilter, TracksA300nTOffsetDrift) {
+  const Truth tr;
+  SimOptions o = noisy_manoeuvre(600);
+  o.drift_nT = {300, -300, 300};
+  std::mt19937_64 rng(21);
+  const auto data = simulate_manoeuvre(tr, o, rng);
+  VfConfig<double> cfg;
+  cfg.offset_q_nT2_per_s = 1.0;
+  Filter<double> f(cfg);
+  double ss = 0, worst = 0, worst_sigma = 0;
+  int n = 0;
+  for (std::size_t i = 0; i < data.size(); ++i) {
+    f.update(data[i].in);
+    const double t = static_cast<double>(i) / o.rate_hz;
+    if (t < 300 || !f.initialised()) continue;
+    const Vec3<double> truth_o = tr.li.kof + o.drift_nT * (t / o.duration_s);
+    const Vec3<double> e = f.offset_ref_nT() - truth_o;
+    ss += e.squaredNorm() / 3;
+    worst = std::max(worst, e.cwiseAbs().maxCoeff());
+    worst_sigma =
+        std::max(worst_sigma, (e.cwiseQuotient(f.sigmas().o_ref_nT)).cwiseAbs().maxCoeff());
+    ++n;
+  }
+  print_counters(f);
+  const double rms = std::sqrt(ss / n);
+  std::printf(
+      "offset drift 300 nT/600 s: offset error over the last 300 s RMS %.3f nT, worst %.3f nT "
+      "(%.2f sigma), final 1-sigma %.3f nT\n",
+      rms, worst, worst_sigma, f.sigmas().o_ref_nT.maxCoeff());
+  EXPECT_EQ(f.counters().resets, 0U);
+  EXPECT_LT(rms, 1.0);          // measured 0.73 nT
+  EXPECT_LT(worst_sigma, 4.0);  // measured 2.98 sigma (3.02 nT against a 1.14 nT 1-sigma)
+}
+
+TEST(VectorCalibrationFilter, FollowsA20nTFieldStepWithoutCorruptingWAndRm) {
+  const Truth tr;
+  SimOptions o = noisy_manoeuvre(60);
+  SimOptions o_step = o;
+  o_step.step_time_s = 30;
+  o_step.step_nT = {0, 12, -16};
+  std::mt19937_64 rng_a(31), rng_b(31);
+  const auto data = simulate_manoeuvre(tr, o, rng_a);
+  const auto data_step = simulate_manoeuvre(tr, o_step, rng_b);
+  VfConfig<double> cfg;
+  cfg.field_q_nT2_per_s = 0.01;
+  auto f = run<double>(data, cfg);
+  auto g = run<double>(data_step, cfg);
+  print_counters(*g);
+  EXPECT_GE(g->counters().field_reopens, 1U);
+  EXPECT_EQ(g->counters().resets, 0U);
+  const Vec<double, 19> e = state_errors(*f, tr, data.back().h_n);
+  const Vec<double, 19> es = state_errors(*g, tr, data_step.back().h_n);
+  const Vec<double, 19> sig = state_sigmas(*g);
+  for (int k = 12; k < 15; ++k) {
+    std::printf("%s error after the step %.3f nT (1-sigma %.3f)\n", kStateNames[k], es(k), sig(k));
+    EXPECT_LT(std::abs(es(k)), 3 * sig(k) + 0.5) << kStateNames[k];
+  }
+  double worst = 0;
+  for (int k = 0; k < 12; ++k) {
+    if (k >= 6 && k < 9) continue;  // offsets: reported with W below
+    worst = std::max(worst, std::abs(es(k) - e(k)) / sig(k));
+    EXPECT_LT(std::abs(es(k)), 3 * sig(k)) << kStateNames[k];
+  }
+  std::printf("W and Rm with and without the step differ by at most %.3f sigma\n", worst);
+  EXPECT_LT(worst, 1.0);
+}
+
+// ---- 4. time offset -------------------------------------------------------------------------
+TEST(VectorCalibrationFilter, Recovers10msMagnetometerLag) {
+  Truth tr;
+  tr.tau_s = 0.010;
+  const SimOptions o = noisy_manoeuvre(30);  // exact kinematics: attitude at t - tau
+  for (unsigned seed : {41U, 42U, 43U}) {
+    std::mt19937_64 rng(seed);
+    const auto data = simulate_manoeuvre(tr, o, rng);
+    auto f = run<double>(data, VfConfig<double>{});
+    ASSERT_TRUE(f->initialised());
+    EXPECT_EQ(f->counters().resets, 0U);
+    std::printf("seed %u: time offset %.4f ms +- %.4f ms (truth 10 ms)\n", seed,
+                f->time_offset_s() * 1e3, f->sigmas().dt_s * 1e3);
+    EXPECT_LT(std::abs(f->time_offset_s() - tr.tau_s), 1e-3);
+  }
+}
+
+// ---- 5. float32 against double --------------------------------------------------------------
+// Both precisions from the same stored start (a start from data may keep different samples when a
+// batch verdict differs in the last digit, which would compare data sets, not arithmetic).
+template <typename Scalar>
+VfStart<Scalar> stored_start(const Truth& tr) {
+  LiParams<double> li = tr.li;
+  // A previous calibration, off by about its stated 1-sigmas.
+  li.ks += Vec3<double>(2e-5, -1e-5, 1.5e-5);
+  li.o_rad += Vec3<double>(1e-5, -2e-5, 1e-5);
+  li.kof += Vec3<double>(1, -0.7, 1.2);
+  li.rm_rad += Vec3<double>(0.01, -0.008, 0.012) * kDeg;
+  VfStart<Scalar> st;
+  st.model = from_li(li).template cast<Scalar>();
+  st.sigma.ks.setConstant(Scalar(3e-5));
+  st.sigma.o_rad.setConstant(Scalar(3e-5));
+  st.sigma.kof.setConstant(Scalar(1.5));
+  st.sigma.rm_rad.setConstant(static_cast<Scalar>(0.02 * kDeg));
+  st.temperature_ref_degC = static_cast<Scalar>(tr.t0_degC);
+  return st;
+}
+
+// NOT MET (measured): largest float/double difference 3.2 sigma (c_x). Both start from the same
+// stored calibration, but the scalar reference is gated in the first samples and h_n re-opened at
+// different samples in the two precisions (3 times in double, once in float), so the histories
+// part; target kept at 0.1 sigma. The noise-free float run reaches 2e-7 (see above).
+TEST(VectorCalibrationFilter, FloatMatchesDoubleWithinATenthSigma) {
+  Truth tr;
+  tr.tau_s = 0.005;
+  tr.tc = {0.3, -0.3, 0.3};
+  SimOptions o = noisy_manoeuvre(30);
+  o.with_temperature = true;
+  o.temp_start_degC = 15;
+  o.temp_end_degC = 35;
+  std::mt19937_64 rng(51);
+  const auto data = simulate_manoeuvre(tr, o, rng);
+  Filter<double> fd;
+  Filter<float> ff;
+  fd.start(stored_start<double>(tr));
+  ff.start(stored_start<float>(tr));
+  for (const SimSample& s : data) {
+    fd.update(s.in);
+    ff.update(cast_sample<float>(s.in));
+  }
+  ASSERT_TRUE(fd.initialised());
+  ASSERT_TRUE(ff.initialised());
+  print_counters(fd);
+  print_counters(ff);
+  const Vec<double, 19> ed = state_errors(fd, tr, tr.h_n), ef = state_errors(ff, tr, tr.h_n);
+  const Vec<double, 19> sig = state_sigmas(fd);
+  double worst = 0, worst_truth = 0;
+  int worst_k = 0;
+  for (int k = 0; k < 19; ++k) {
+    const double d = std::abs(ef(k) - ed(k)) / sig(k);
+    worst_truth = std::max(worst_truth, std::abs(ed(k)) / sig(k));
+    if (d > worst) {
+      worst = d;
+      worst_k = k;
+    }
+  }
+  std::printf(
+      "float32 vs double: largest difference %.3f sigma (%s); double's largest error %.2f sigma\n",
+      worst, kStateNames[worst_k], worst_truth);
+  EXPECT_LT(worst, 0.1);
+  EXPECT_LT(worst_truth, 4.0);
+}
+
+// ---- 6. no heap per sample ------------------------------------------------------------------
+template <typename Scalar>
+std::size_t allocations_over_a_run(const std::vector<SimSample>& data) {
+  std::vector<VfSample<Scalar>> in;
+  for (const SimSample& s : data)
+    in.push_back(cast_sample<Scalar>(s.in));
+  auto f = std::make_unique<Filter<Scalar>>();
+  test::AllocationScope scope;
+  for (const VfSample<Scalar>& s : in)
+    f->update(s);
+  const std::size_t n = scope.count();
+  EXPECT_TRUE(f->initialised());
+  return n;
+}
+
+TEST(VectorCalibrationFilter, NoHeapAllocationPerSample) {
+  Truth tr;
+  tr.tau_s = 0.005;
+  SimOptions o = noisy_manoeuvre(20);
+  o.with_temperature = true;
+  o.temp_end_degC = 30;
+  std::mt19937_64 rng(61);
+  const auto data = simulate_manoeuvre(tr, o, rng);
+  // The whole run, the start from data (batch fit and replays) included.
+  EXPECT_EQ(allocations_over_a_run<double>(data), 0U);
+  EXPECT_EQ(allocations_over_a_run<float>(data), 0U);
 }
 
 }  // namespace

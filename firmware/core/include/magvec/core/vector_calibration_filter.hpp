@@ -423,6 +423,7 @@ class VectorCalibrationFilter {
     nom_.setZero();
     x_.setZero();
     rm_nom_ = Quat<Scalar>::Identity();
+    ref_dir_.setZero();
     u_.setIdentity();
     d_.setOnes();
     held_.fill(false);
@@ -642,8 +643,13 @@ class VectorCalibrationFilter {
     init_verdict_ = res.verdict;
     // The batch fit knows neither the time offset nor the temperature term: residuals too large
     // or a fit that did not settle still give a linearisation point; the replay decides (E-VF-1).
+    // Raw direction coverage below the batch methods' limit is accepted when every parameter is
+    // still determined to the acceptance limit: a linearisation point is all the filter needs,
+    // and waiting for coverage would discard the samples passing meanwhile.
+    const bool determined = res.verdict == Verdict::kInsufficientCoverage &&
+                            res.quality.undetermined == 0 && res.converged;
     const bool usable = res.verdict == Verdict::kOk || res.verdict == Verdict::kResidualTooLarge ||
-                        res.verdict == Verdict::kNotConverged;
+                        res.verdict == Verdict::kNotConverged || determined;
     if (!usable || !res.has_model || !res.has_h_n || !res.h_n_nT.allFinite()) return false;
     const SensorModel<Scalar> li_model = from_li(res.li);
     if (!li_model.w.allFinite() || !(li_model.w.determinant() > Scalar(0))) return false;
@@ -727,6 +733,7 @@ class VectorCalibrationFilter {
 
   // Nominal + error folded into the nominal (x = 0 afterwards, covariance unchanged).
   void fold_all() noexcept {
+    ref_dir_.setZero();  // the next reference update takes the current direction
     rm_nom_ = rm_current();
     const StateVec f = full();
     nom_ = f;
@@ -868,8 +875,12 @@ class VectorCalibrationFilter {
     const Vec3<Scalar> hn = full().template segment<3>(kHn0);
     const Scalar n = hn.norm();
     if (!(n > Scalar(0))) return false;
+    // First-estimate Jacobian: the direction is fixed at the start (and at a field re-open). A
+    // precise constraint relinearised along a wandering direction would remove variance across
+    // h_n that no measurement removed (an overconfident declination, heading and time offset).
+    if (!(ref_dir_.squaredNorm() > Scalar(0))) ref_dir_ = hn / n;
     StateVec h = StateVec::Zero();
-    h.template segment<3>(kHn0) = hn / n;
+    h.template segment<3>(kHn0) = ref_dir_;
     const Scalar sf = noise_factor_ * reference_sigma();
     const Scalar r = sf * sf;
     const Scalar nu = f - n;
@@ -1000,6 +1011,7 @@ class VectorCalibrationFilter {
       p(k, k) = sh * sh;
     }
     if (ud_factorise(p)) {
+      ref_dir_.setZero();
       last_reset_ = VfResetReason::kFieldChange;
       ++counters_.field_reopens;
       consecutive_ref_gated_ = 0;
@@ -1133,7 +1145,8 @@ class VectorCalibrationFilter {
   int consecutive_rejections_ = 0;
   int consecutive_ref_gated_ = 0;
   Scalar last_nis_{0};
-  Scalar noise_factor_{1};  // replay damping (1 when running live)
+  Scalar noise_factor_{1};                       // replay damping (1 when running live)
+  Vec3<Scalar> ref_dir_ = Vec3<Scalar>::Zero();  // reference update's direction (E-VF-4)
 };
 
 }  // namespace magvec::core

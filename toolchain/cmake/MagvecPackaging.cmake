@@ -24,6 +24,19 @@ set(CPACK_DEBIAN_PACKAGE_PRIORITY optional)
 set(CPACK_DEBIAN_PACKAGE_SHLIBDEPS ON)
 # The report script and the command-line plotting need Python; lcm-spy needs Java (suggested).
 set(CPACK_DEBIAN_PACKAGE_DEPENDS "python3")
+if(CMAKE_CROSSCOMPILING AND CMAKE_SYSTEM_PROCESSOR STREQUAL "aarch64")
+  # The arm64 cross build (preset arm64): CPack would name the build machine's architecture, and
+  # dpkg-shlibdeps cannot resolve LCM and GeographicLib, which the toolchain file takes from
+  # extracted packages that dpkg does not know (toolchain/setup). The shared libraries magvec and
+  # magvecd need are listed instead, with the versions dpkg-shlibdeps gives the amd64 package of
+  # the same Debian 12 libraries (the NEEDED entries of the two programs).
+  set(CPACK_DEBIAN_PACKAGE_ARCHITECTURE arm64)
+  set(CPACK_DEBIAN_PACKAGE_SHLIBDEPS OFF)
+  string(CONCAT CPACK_DEBIAN_PACKAGE_DEPENDS
+         "python3, libc6 (>= 2.35), libfmt9 (>= 9.1.0+ds1), libgcc-s1 (>= 3.0), "
+         "libgeographiclib23 (>= 1.50), libgpiod2 (>= 1.1), liblcm1, libspdlog1.10-fmt9, "
+         "libstdc++6 (>= 12), libsystemd0, libtomlplusplus3 (>= 3.2.0)")
+endif()
 set(CPACK_DEBIAN_PACKAGE_RECOMMENDS "python3-matplotlib, python3-numpy, liblcm-bin")
 set(CPACK_DEBIAN_PACKAGE_SUGGESTS "liblcm-java")
 set(CPACK_DEBIAN_PACKAGE_CONTROL_STRICT_PERMISSION ON)

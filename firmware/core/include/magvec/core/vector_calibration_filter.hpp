@@ -34,6 +34,7 @@
 #include "magvec/core/one_step.hpp"
 #include "magvec/core/sensor_model.hpp"
 #include "magvec/core/types.hpp"
+#include "magvec/core/ud_factor.hpp"
 
 namespace magvec::core {
 
@@ -1019,7 +1020,7 @@ class VectorCalibrationFilter {
     }
   }
 
-  // ---- U-D factor updates (as scalar_ekf.hpp, E-Ge-C) ------------------------------------------
+  // ---- U-D factor updates (ud_factor.hpp, E-Ge-C) ----------------------------------------------
   StateMat covariance_normalised() const noexcept {
     StateMat p = StateMat::Zero();
     for (int i = 0; i < kStates; ++i)
@@ -1033,80 +1034,19 @@ class VectorCalibrationFilter {
     return p;
   }
   StateVec ut_times(const StateVec& h) const noexcept {
-    StateVec f;
-    for (int j = 0; j < kStates; ++j) {
-      Scalar acc = h(j);
-      for (int i = 0; i < j; ++i)
-        acc += u_(i, j) * h(i);
-      f(j) = acc;
-    }
-    return f;
+    return ud_ut_times<Scalar, kStates>(u_, h);
   }
-  bool u_upper_finite() const noexcept {
-    Scalar probe{0};
-    for (int j = 1; j < kStates; ++j)
-      for (int i = 0; i < j; ++i)
-        probe += u_(i, j) * Scalar(0);
-    return probe == Scalar(0);
-  }
+  bool u_upper_finite() const noexcept { return ud_upper_finite<Scalar, kStates>(u_); }
   // Agee-Turner: U D U^T + c e_k e_k^T, c > 0.
   void add_diagonal_noise(int k, Scalar c) noexcept {
-    StateVec a = StateVec::Zero();
-    a(k) = Scalar(1);
-    for (int j = k; j > 0; --j) {
-      const Scalar s = a(j);
-      const Scalar dj = d_(j) + c * s * s;
-      const Scalar beta = c * s / dj;
-      c = c * d_(j) / dj;
-      d_(j) = dj;
-      for (int i = 0; i < j; ++i) {
-        a(i) -= s * u_(i, j);
-        u_(i, j) += beta * a(i);
-      }
-    }
-    d_(0) += c * a(0) * a(0);
+    ud_add_diagonal_noise<Scalar, kStates>(u_, d_, k, c);
   }
   // Bierman's scalar update for f = U^T h and variance r: unnormalised gain k and s = h P h^T + r.
   void bierman(const StateVec& f, Scalar r, StateVec* k_out, Scalar* s_out) noexcept {
-    const StateVec v = d_.cwiseProduct(f);
-    StateVec k = StateVec::Zero();
-    Scalar alpha = r + f(0) * v(0);
-    d_(0) *= r / alpha;
-    k(0) = v(0);
-    for (int j = 1; j < kStates; ++j) {
-      const Scalar beta = alpha;
-      alpha += f(j) * v(j);
-      const Scalar lambda = -f(j) / beta;
-      d_(j) *= beta / alpha;
-      for (int i = 0; i < j; ++i) {
-        const Scalar uij = u_(i, j);
-        u_(i, j) = uij + lambda * k(i);
-        k(i) += v(j) * uij;
-      }
-      k(j) = v(j);
-    }
-    *k_out = k;
-    *s_out = alpha;
+    ud_bierman_update<Scalar, kStates>(u_, d_, f, r, k_out, s_out);
   }
   bool ud_factorise(const StateMat& p) noexcept {
-    StateMat u = StateMat::Identity();
-    StateVec d = StateVec::Zero();
-    for (int j = kStates - 1; j >= 0; --j) {
-      Scalar dj = p(j, j);
-      for (int k = j + 1; k < kStates; ++k)
-        dj -= d(k) * u(j, k) * u(j, k);
-      if (!(dj > Scalar(0))) return false;
-      d(j) = dj;
-      for (int i = 0; i < j; ++i) {
-        Scalar a = p(i, j);
-        for (int k = j + 1; k < kStates; ++k)
-          a -= d(k) * u(i, k) * u(j, k);
-        u(i, j) = a / dj;
-      }
-    }
-    u_ = u;
-    d_ = d;
-    return true;
+    return core::ud_factorise<Scalar, kStates>(p, &u_, &d_);
   }
 
   Config cfg_{};

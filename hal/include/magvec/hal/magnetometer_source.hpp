@@ -4,6 +4,7 @@
 
 #include <array>
 #include <cstdint>
+#include <limits>
 
 #include "magvec/hal/status.hpp"
 
@@ -25,6 +26,8 @@ struct MagnetometerSample {
   std::array<std::int32_t, 3> raw{};  // raw instrument codes/counts per axis (diagnostics)
   std::uint32_t flags{0};             // MagFlag bits
   std::uint32_t sequence{0};          // increments per delivered sample (gap => dropout)
+  // Sensor temperature at the sample (a fluxgate's temperature channel), degC; NaN: none.
+  double temperature_degC{std::numeric_limits<double>::quiet_NaN()};
 };
 
 // Error and health counters every magnetometer driver keeps (monotonic, wrap at 2^32).

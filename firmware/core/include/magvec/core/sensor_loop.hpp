@@ -118,6 +118,8 @@ struct MagSample {
   std::uint64_t t_us{0};
   Vec3<Scalar> m_nT = Vec3<Scalar>::Zero();
   Scalar f_ref_nT = std::numeric_limits<Scalar>::quiet_NaN();  // scalar reference, NaN when none
+  // Sensor temperature (for a calibrator with a temperature model), degC; NaN when none.
+  Scalar temperature_degC = std::numeric_limits<Scalar>::quiet_NaN();
   bool device_error{false};
   bool spike{false};  // set by the pipeline's spike screen
 };

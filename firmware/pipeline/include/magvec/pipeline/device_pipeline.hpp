@@ -106,6 +106,7 @@ class DevicePipeline {
     m.m_nT = core::Vec3<Scalar>(static_cast<Scalar>(s.m_nT[0]), static_cast<Scalar>(s.m_nT[1]),
                                 static_cast<Scalar>(s.m_nT[2]));
     m.f_ref_nT = f_ref_nT;
+    m.temperature_degC = static_cast<Scalar>(s.temperature_degC);
     m.device_error = (s.flags & hal::kMagInvalidMask) != 0;
     core_.on_magnetometer(m, (s.flags & hal::kMagNotFresh) != 0, emit);
   }

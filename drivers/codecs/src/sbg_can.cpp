@@ -33,6 +33,16 @@ std::int16_t to_i16(double v) noexcept {
   if (r < -32768.0) return -32768;
   return static_cast<std::int16_t>(r);
 }
+std::int32_t get_i32(const hal::CanFrame& f, std::size_t off) noexcept {
+  return static_cast<std::int32_t>(get_u32(f, off));
+}
+std::int32_t to_i32(double v) noexcept {
+  if (!std::isfinite(v)) return 0;
+  const double r = std::round(v);
+  if (r > 2147483647.0) return 2147483647;
+  if (r < -2147483648.0) return -2147483647 - 1;
+  return static_cast<std::int32_t>(r);
+}
 std::uint16_t to_u16(double v) noexcept {
   if (!std::isfinite(v) || v <= 0) return 0;
   const double r = std::round(v);
@@ -101,15 +111,70 @@ bool CanDecoder::epoch_already_sampled() noexcept {
   return true;
 }
 
+FeedResult CanDecoder::feed_position(const hal::CanFrame& f) noexcept {
+  const bool lat_lon = f.id == config_.ids.ekf_pos;
+  if (same_as_last(f)) {
+    ++position_counters_.duplicates;
+    return FeedResult::kDuplicate;
+  }
+  // A rejected half ends the pair: the other half must not be combined with an older one.
+  auto reject = [&](std::uint32_t* counter, FeedResult r) {
+    (lat_lon ? lat_lon_fresh_ : altitude_fresh_) = false;
+    ++*counter;
+    return r;
+  };
+  if (lat_lon) {
+    if (f.dlc != 8) return reject(&position_counters_.malformed, FeedResult::kMalformed);
+    const std::int32_t lat = get_i32(f, 0), lon = get_i32(f, 4);
+    if (std::abs(static_cast<double>(lat)) * kLatLonScale > 90.0 ||
+        std::abs(static_cast<double>(lon)) * kLatLonScale > 180.0) {
+      return reject(&position_counters_.out_of_range, FeedResult::kOutOfRange);
+    }
+    raw_.lat = lat;
+    raw_.lon = lon;
+    lat_lon_fresh_ = true;
+  } else {
+    if (f.dlc < 6 || f.dlc > 8)
+      return reject(&position_counters_.malformed, FeedResult::kMalformed);
+    const std::int32_t alt = get_i32(f, 0);
+    const std::int16_t und = get_i16(f, 4);
+    const double alt_m = alt * kAltitudeScale, und_m = und * kUndulationScale;
+    if (alt_m < kMinAltitude_m || alt_m > kMaxAltitude_m || std::fabs(und_m) > kMaxUndulation_m)
+      return reject(&position_counters_.out_of_range, FeedResult::kOutOfRange);
+    raw_.altitude = alt;
+    raw_.undulation = und;
+    altitude_fresh_ = true;
+  }
+  if (!lat_lon_fresh_ || !altitude_fresh_) return FeedResult::kConsumed;
+  position_.t_us = f.t_us;
+  position_.t_ins_us = raw_.ekf_time_us;
+  position_.lat_deg = raw_.lat * kLatLonScale;
+  position_.lon_deg = raw_.lon * kLatLonScale;
+  position_.altitude_m = raw_.altitude * kAltitudeScale;
+  position_.undulation_m = raw_.undulation * kUndulationScale;
+  std::uint32_t flags = 0;
+  if (status_known_) {
+    flags |= hal::kPosStatusKnown;
+    if ((raw_.solution_status & kSolPositionValid) != 0) flags |= hal::kPosValid;
+  }
+  position_.flags = flags;
+  lat_lon_fresh_ = false;
+  altitude_fresh_ = false;
+  ++position_counters_.samples;
+  return FeedResult::kPosition;
+}
+
 FeedResult CanDecoder::feed(const hal::CanFrame& f) noexcept {
   const CanIds& ids = config_.ids;
-  const bool known = f.id == ids.status_01 || f.id == ids.status_03 || f.id == ids.ekf_info ||
-                     f.id == ids.ekf_quat || f.id == ids.ekf_euler ||
+  const bool position = f.id == ids.ekf_pos || f.id == ids.ekf_altitude;
+  const bool known = position || f.id == ids.status_01 || f.id == ids.status_03 ||
+                     f.id == ids.ekf_info || f.id == ids.ekf_quat || f.id == ids.ekf_euler ||
                      f.id == ids.ekf_orientation_acc;
   if (!known || f.extended) {
     ++counters_.ignored;
     return FeedResult::kIgnored;
   }
+  if (position) return feed_position(f);
   if (same_as_last(f)) {
     ++counters_.duplicates;
     return FeedResult::kDuplicate;
@@ -238,6 +303,39 @@ hal::CanFrame encode_orientation_acc(double roll_acc_rad, double pitch_acc_rad, 
   return f;
 }
 
+hal::CanFrame encode_ekf_pos(double lat_deg, double lon_deg, const CanIds& ids) noexcept {
+  hal::CanFrame f = make_frame(ids.ekf_pos, 8);
+  put_u32(f, 0, static_cast<std::uint32_t>(to_i32(lat_deg / kLatLonScale)));
+  put_u32(f, 4, static_cast<std::uint32_t>(to_i32(lon_deg / kLatLonScale)));
+  return f;
+}
+hal::CanFrame encode_ekf_altitude(double altitude_m, double undulation_m,
+                                  const CanIds& ids) noexcept {
+  hal::CanFrame f = make_frame(ids.ekf_altitude, 6);
+  put_u32(f, 0, static_cast<std::uint32_t>(to_i32(altitude_m / kAltitudeScale)));
+  put_u16(f, 4, static_cast<std::uint16_t>(to_i16(undulation_m / kUndulationScale)));
+  return f;
+}
+
+void CanAttitudeSource::queue_position() noexcept {
+  if (position_count_ == kPositionQueue) {
+    position_head_ = (position_head_ + 1) % kPositionQueue;  // the oldest goes
+    --position_count_;
+    ++decoder_.position_counters().overflows;
+  }
+  position_queue_[(position_head_ + position_count_) % kPositionQueue] = decoder_.position();
+  ++position_count_;
+}
+
+hal::Status CanAttitudeSource::Positions::read(hal::PositionSample& out,
+                                               std::uint32_t /*timeout_us*/) noexcept {
+  if (owner_.position_count_ == 0) return hal::Status::kNoData;
+  out = owner_.position_queue_[owner_.position_head_];
+  owner_.position_head_ = (owner_.position_head_ + 1) % kPositionQueue;
+  --owner_.position_count_;
+  return hal::Status::kOk;
+}
+
 hal::Status CanAttitudeSource::read(hal::AttitudeSample& out, std::uint32_t timeout_us) noexcept {
   // Bounded: at most 64 frames per call so a flooded bus cannot starve the caller. The timeout
   // applies to every frame, not only the first: the frames of one epoch arrive one after another
@@ -250,7 +348,9 @@ hal::Status CanAttitudeSource::read(hal::AttitudeSample& out, std::uint32_t time
       ++decoder_.counters().bus_errors;
       return s;
     }
-    if (decoder_.feed(f) == FeedResult::kSample) {
+    const FeedResult r = decoder_.feed(f);
+    if (r == FeedResult::kPosition) queue_position();
+    if (r == FeedResult::kSample) {
       out = decoder_.sample();
       return hal::Status::kOk;
     }

@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <random>
+#include <vector>
 
 #include "support/alloc_counter.hpp"
 
@@ -300,6 +301,164 @@ TEST(SbgCan, AttitudeSourceWaitsForTheRestOfAnEpoch) {
   ASSERT_EQ(src.read(s, 1000), hal::Status::kOk);
   EXPECT_EQ(s.t_ins_us, 10000u);
   EXPECT_EQ(src.read(s, 1000), hal::Status::kTimeout);
+}
+
+// EKF_POS (0x134) and EKF_ALTITUDE (0x135), sbgECom CAN specification, "EKF messages": latitude
+// and longitude int32 x 1e-7 deg, altitude int32 x 1e-3 m above MSL, undulation int16 x 0.005 m.
+TEST(SbgCanPosition, HandAssembledFix) {
+  CanDecoder dec;
+  // STATUS_03: NAV_POSITION | ATTITUDE, HEADING, VELOCITY, POSITION valid = 0xF4.
+  EXPECT_EQ(dec.feed(frame(0x102, {0xF4, 0, 0, 0, 0, 0})), FeedResult::kConsumed);
+  EXPECT_EQ(dec.feed(frame(0x130, {0x40, 0x42, 0x0F, 0x00})), FeedResult::kConsumed);  // 1 s
+  // 48.1372000 N, 11.5756000 E.
+  EXPECT_EQ(dec.feed(frame(0x134, {0x60, 0x27, 0xB1, 0x1C, 0xE0, 0x4B, 0xE6, 0x06}, 10)),
+            FeedResult::kConsumed);
+  // 519.500 m above MSL, undulation 9500 x 0.005 = 47.5 m.
+  ASSERT_EQ(dec.feed(frame(0x135, {0x4C, 0xED, 0x07, 0x00, 0x1C, 0x25}, 20)),
+            FeedResult::kPosition);
+  const hal::PositionSample& p = dec.position();
+  EXPECT_EQ(p.t_us, 20u);
+  EXPECT_EQ(p.t_ins_us, 1'000'000u);
+  EXPECT_NEAR(p.lat_deg, 48.1372, 1e-12);
+  EXPECT_NEAR(p.lon_deg, 11.5756, 1e-12);
+  EXPECT_NEAR(p.altitude_m, 519.5, 1e-12);
+  EXPECT_NEAR(p.undulation_m, 47.5, 1e-12);
+  EXPECT_NEAR(p.height_m(), 567.0, 1e-12);
+  EXPECT_EQ(p.flags, hal::kPosValid | hal::kPosStatusKnown);
+  EXPECT_EQ(dec.position_counters().samples, 1u);
+  // Position frames are not the attitude's business: nothing counted there.
+  EXPECT_EQ(dec.counters().ignored, 0u);
+  EXPECT_EQ(dec.counters().malformed, 0u);
+
+  // Altitude first, then a southern/western position; -6000 x 0.005 = -30 m undulation.
+  EXPECT_EQ(dec.feed(frame(0x102, {0x34, 0, 0, 0, 0, 0})), FeedResult::kConsumed);  // no POS_VALID
+  EXPECT_EQ(dec.feed(frame(0x135, {0x4C, 0xED, 0x07, 0x00, 0x90, 0xE8}, 30)),
+            FeedResult::kConsumed);
+  ASSERT_EQ(dec.feed(frame(0x134, {0x87, 0x2F, 0xD1, 0xEB, 0x87, 0x2F, 0xD1, 0xEB}, 40)),
+            FeedResult::kPosition);
+  EXPECT_NEAR(dec.position().lat_deg, -33.8612345, 1e-12);
+  EXPECT_NEAR(dec.position().lon_deg, -33.8612345, 1e-12);
+  EXPECT_NEAR(dec.position().undulation_m, -30.0, 1e-12);
+  EXPECT_EQ(dec.position().flags, hal::kPosStatusKnown);  // status known, position not valid
+  EXPECT_EQ(dec.position_counters().samples, 2u);
+}
+
+TEST(SbgCanPosition, WithoutStatusTheValidityIsUnknown) {
+  CanDecoder dec;
+  EXPECT_EQ(dec.feed(frame(0x134, {0x60, 0x27, 0xB1, 0x1C, 0xE0, 0x4B, 0xE6, 0x06})),
+            FeedResult::kConsumed);
+  ASSERT_EQ(dec.feed(frame(0x135, {0x4C, 0xED, 0x07, 0x00, 0x1C, 0x25})), FeedResult::kPosition);
+  EXPECT_EQ(dec.position().flags, 0u);
+  EXPECT_EQ(dec.position().t_ins_us, 0u);
+}
+
+TEST(SbgCanPosition, WrongLengthsAndOutOfRangeValuesAreCountedRejections) {
+  CanDecoder dec;
+  // Wrong lengths: EKF_POS needs exactly 8 bytes, EKF_ALTITUDE 6 (up to 8).
+  EXPECT_EQ(dec.feed(frame(0x134, {0x60, 0x27, 0xB1, 0x1C, 0xE0, 0x4B, 0xE6})),
+            FeedResult::kMalformed);
+  EXPECT_EQ(dec.feed(frame(0x135, {0x4C, 0xED, 0x07, 0x00, 0x1C})), FeedResult::kMalformed);
+  hal::CanFrame long_frame = frame(0x135, {0x4C, 0xED, 0x07, 0x00, 0x1C, 0x25, 0, 0});
+  long_frame.dlc = 9;
+  EXPECT_EQ(dec.feed(long_frame), FeedResult::kMalformed);
+  EXPECT_EQ(dec.position_counters().malformed, 3u);
+  // Latitude 90.0000001 deg, longitude 180.0000001 deg: beyond what a position can be.
+  EXPECT_EQ(dec.feed(frame(0x134, {0x01, 0xE9, 0xA4, 0x35, 0, 0, 0, 0})), FeedResult::kOutOfRange);
+  EXPECT_EQ(dec.feed(frame(0x134, {0, 0, 0, 0, 0x01, 0xD2, 0x49, 0x6B})), FeedResult::kOutOfRange);
+  // Altitude -12000.001 m; undulation 30001 x 0.005 = 150.005 m.
+  EXPECT_EQ(dec.feed(frame(0x135, {0xFF, 0xE4, 0x48, 0xFF, 0, 0})), FeedResult::kOutOfRange);
+  EXPECT_EQ(dec.feed(frame(0x135, {0, 0, 0, 0, 0x31, 0x75})), FeedResult::kOutOfRange);
+  EXPECT_EQ(dec.position_counters().out_of_range, 4u);
+  EXPECT_EQ(dec.position_counters().samples, 0u);
+  // The extreme legal values pass: 90 S, 180 W (-900000000, -1800000000).
+  EXPECT_EQ(dec.feed(frame(0x134, {0x00, 0x17, 0x5B, 0xCA, 0x00, 0x2E, 0xB6, 0x94})),
+            FeedResult::kConsumed);
+  // A rejected half ends the pair: a good altitude after a bad latitude makes no fix.
+  EXPECT_EQ(dec.feed(frame(0x134, {0x01, 0xE9, 0xA4, 0x35, 0, 0, 0, 0})), FeedResult::kOutOfRange);
+  EXPECT_EQ(dec.feed(frame(0x135, {0x4C, 0xED, 0x07, 0x00, 0x1C, 0x25})), FeedResult::kConsumed);
+  EXPECT_EQ(dec.position_counters().samples, 0u);
+  EXPECT_EQ(dec.feed(frame(0x134, {0x00, 0x17, 0x5B, 0xCA, 0x00, 0x2E, 0xB6, 0x94})),
+            FeedResult::kPosition);
+  EXPECT_DOUBLE_EQ(dec.position().lat_deg, -90.0);
+  EXPECT_DOUBLE_EQ(dec.position().lon_deg, -180.0);
+  // A frame received twice back to back: a counted duplicate, in the position counters.
+  EXPECT_EQ(dec.feed(frame(0x134, {0x00, 0x17, 0x5B, 0xCA, 0x00, 0x2E, 0xB6, 0x94})),
+            FeedResult::kDuplicate);
+  EXPECT_EQ(dec.position_counters().duplicates, 1u);
+  EXPECT_EQ(dec.counters().duplicates, 0u);
+  // Nothing of this reached the attitude counters.
+  EXPECT_EQ(dec.counters().malformed, 0u);
+  EXPECT_EQ(dec.counters().samples, 0u);
+}
+
+TEST(SbgCanPosition, EncodersRoundTripAndConfiguredIds) {
+  CanIds ids;
+  ids.ekf_pos = 0x234;
+  ids.ekf_altitude = 0x235;
+  const hal::CanFrame p = encode_ekf_pos(48.1372, 11.5756, ids);
+  const hal::CanFrame a = encode_ekf_altitude(519.5, 47.5, ids);
+  EXPECT_EQ(p.id, 0x234u);
+  EXPECT_EQ(p.dlc, 8);
+  EXPECT_EQ(p.data, (std::array<std::uint8_t, 8>{0x60, 0x27, 0xB1, 0x1C, 0xE0, 0x4B, 0xE6, 0x06}));
+  EXPECT_EQ(a.id, 0x235u);
+  EXPECT_EQ(a.dlc, 6);
+  EXPECT_EQ(a.data, (std::array<std::uint8_t, 8>{0x4C, 0xED, 0x07, 0x00, 0x1C, 0x25, 0, 0}));
+  // The default IDs are not position messages any more for this decoder: ignored.
+  DecoderConfig cfg;
+  cfg.ids = ids;
+  CanDecoder dec(cfg);
+  EXPECT_EQ(dec.feed(encode_ekf_pos(1, 2)), FeedResult::kIgnored);
+  EXPECT_EQ(dec.feed(p), FeedResult::kConsumed);
+  ASSERT_EQ(dec.feed(a), FeedResult::kPosition);
+  EXPECT_NEAR(dec.position().lat_deg, 48.1372, 1e-12);
+}
+
+// A bus carrying attitude epochs with a position fix in each: the attitude reader gets every
+// attitude sample and the fixes wait for positions() (the oldest dropped, counted, beyond 8).
+struct ScriptedCan final : hal::CanBus {
+  hal::Status receive(hal::CanFrame& out, std::uint32_t) noexcept override {
+    if (next >= frames.size()) return hal::Status::kTimeout;
+    out = frames[next++];
+    return hal::Status::kOk;
+  }
+  hal::Status send(const hal::CanFrame&) noexcept override { return hal::Status::kOk; }
+  std::vector<hal::CanFrame> frames;
+  std::size_t next{0};
+};
+
+TEST(SbgCanPosition, AttitudeSourceQueuesTheFixesForItsPositionSource) {
+  ScriptedCan bus;
+  const std::size_t epochs = 10;
+  for (std::size_t k = 0; k < epochs; ++k) {
+    bus.frames.push_back(encode_status_03(0xF4, 0));
+    bus.frames.push_back(encode_ekf_info(static_cast<std::uint32_t>(1000 * k)));
+    bus.frames.push_back(encode_ekf_pos(48.0 + 1e-5 * static_cast<double>(k), 11.0));
+    bus.frames.push_back(encode_ekf_altitude(500.0, 47.0));
+    bus.frames.push_back(encode_ekf_quat({1, 0, 0, 0}));
+  }
+  CanAttitudeSource src(bus);
+  hal::PositionSource& pos = src.positions();
+  hal::PositionSample p;
+  EXPECT_EQ(pos.read(p, 1000), hal::Status::kNoData);  // never reads the bus itself
+  EXPECT_EQ(bus.next, 0u);
+  hal::AttitudeSample a;
+  ASSERT_EQ(src.read(a, 0), hal::Status::kOk);
+  ASSERT_EQ(pos.read(p, 0), hal::Status::kOk);
+  EXPECT_NEAR(p.lat_deg, 48.0, 1e-9);
+  EXPECT_EQ(pos.read(p, 0), hal::Status::kNoData);
+  std::size_t attitudes = 1;
+  while (src.read(a, 0) == hal::Status::kOk)
+    ++attitudes;
+  EXPECT_EQ(attitudes, epochs);
+  // 9 fixes queued, 8 kept: the oldest of them went.
+  EXPECT_EQ(pos.counters().overflows, 1u);
+  std::size_t fixes = 0;
+  while (pos.read(p, 0) == hal::Status::kOk) {
+    EXPECT_NEAR(p.lat_deg, 48.0 + 1e-5 * static_cast<double>(fixes + 2), 1e-9);
+    ++fixes;
+  }
+  EXPECT_EQ(fixes, 8u);
+  EXPECT_EQ(pos.counters().samples, epochs);
 }
 
 }  // namespace

@@ -6,6 +6,8 @@
 //   ellipsoid ellipsoid fit only (no attitude needed; W up to a rotation, Rm identity)
 //   sine      turntable sine fitting from an XY and an XZ sweep (docs/equations.md E-Sine)
 //   ekf       the 12-state scalar EKF of Ge et al. 2017 (E-Ge)
+//   vector-ekf  the online vector calibration filter (E-VF): W, o, Rm, h_n, time offset and
+//             temperature coefficients in one pass over a recording with attitude
 // Noise figures, the magnetometer-INS time offset and (without an F column) the field are taken
 // from the data unless given; cal.json records what was used. --site/--date take the reference
 // field of a recording without F from the WMM2025 model (host/geomag); a measured F_nT column wins
@@ -23,12 +25,14 @@
 #include <optional>
 #include <sstream>
 #include <string>
+#include <system_error>
 #include <vector>
 
 #include "calibration/batch_runner.hpp"
 #include "calibration/calibration_file.hpp"
 #include "calibration/ekf_runner.hpp"
 #include "calibration/sine_runner.hpp"
+#include "calibration/vector_ekf_runner.hpp"
 #include "commands.hpp"
 #include "magvec/host/geomag/reference_field.hpp"
 #include "magvec/host/io/csv.hpp"
@@ -391,6 +395,88 @@ CalibrationFile run_ekf_method(const CalibrateOptions& o) {
   return run.cal;
 }
 
+CalibrationFile run_vector_ekf_method(const CalibrateOptions& o) {
+  io::CsvReaderOptions ropt;
+  if (std::isfinite(o.field_nT)) ropt.f_nT = o.field_nT;
+  ropt.f_replaces_column = o.model_f;
+  VectorEkfRunOptions vo;
+  vo.float32 = o.float32;
+  if (std::isfinite(o.noise_nT)) vo.noise_nT = o.noise_nT;
+  if (std::isfinite(o.ins_noise_deg)) vo.ins_noise_deg = o.ins_noise_deg;
+  if (std::isfinite(o.field_nT)) vo.field_nT = o.field_nT;
+  if (std::isfinite(o.time_offset_s)) vo.time_offset_s = o.time_offset_s;
+  vo.trace_path = o.trace;
+  VectorEkfRun run;
+  try {
+    run = run_vector_ekf(o.in_path, ropt, vo);
+  } catch (const std::invalid_argument& e) {
+    throw CommandExit(2, e.what());
+  } catch (const std::system_error& e) {
+    throw CommandExit(2,
+                      (o.trace.empty() ? std::string() : "--trace " + o.trace + ": ") + e.what());
+  }
+  std::cout << "magvec calibrate: method vector-ekf: online vector calibration filter "
+               "(docs/equations.md E-VF), "
+            << (o.float32 ? "float32" : "float64") << ", one pass\n"
+            << "  input " << o.in_path << "\n";
+  std::cout << "  noise: magnetometer " << fixed(run.noise_nT, 3);
+  if (run.noise_estimated) std::cout << " +- " << fixed(run.noise_sigma_nT, 3);
+  std::cout << " nT/axis (" << (run.noise_estimated ? "estimated by the one-step fit" : "given")
+            << "), INS " << fixed(run.ins_noise_deg, 4);
+  if (run.ins_noise_estimated) std::cout << " +- " << fixed(run.ins_noise_sigma_deg, 4);
+  std::cout << " deg/angle (" << (run.ins_noise_estimated ? "estimated" : "given") << ")\n";
+  for (const std::string& w : run.warnings)
+    std::cout << "  warning: " << w << "\n";
+  if (run.field_from_data) {
+    std::cout << "  no reference field (no F_nT column, no --field-nT): the median |m| "
+              << fixed(run.field_nT, 1)
+              << " nT stands for it, so scale factors and offsets are relative to it\n";
+  }
+  std::cout << "  temperature: "
+            << (run.rows_with_temperature > 0
+                    ? std::to_string(run.rows_with_temperature) + " rows with temperature_degC"
+                    : std::string("none in the recording (temperature coefficients keep their "
+                                  "prior)"))
+            << "\n";
+  print_counts(run.cal.counts, ", without attitude " + std::to_string(run.rows_without_attitude));
+  const core::VfCounters& k = run.counters;
+  std::cout << "  filter: " << k.updates << " updates, " << k.reference_updates
+            << " reference updates, " << k.gated << " gated, " << k.resets
+            << " resets (last reason " << run.last_reset << "), " << k.field_reopens
+            << " field re-opens, " << k.init_attempts << " starts from data tried ("
+            << k.init_failures << " refused), heading held in " << k.heading_held << " updates\n";
+  if (run.initialised) {
+    if (run.li_ok) print_li(run.li, &run.li_sigma, true);
+    std::cout << "    h_n nT (E,N,U) " << pm3(run.h_n_nT, run.h_n_sigma_nT, 2) << ", |h_n| "
+              << fixed(run.h_n_nT.norm(), 2) << "\n"
+              << "  time offset (magnetometer minus INS): ";
+    if (std::isfinite(o.time_offset_s)) {
+      std::cout << fixed(run.time_offset_s * 1e3, 3) << " ms (fixed by --time-offset-s)\n";
+    } else {
+      std::cout << pm(run.time_offset_s * 1e3, run.time_offset_sigma_s * 1e3, 3)
+                << " ms (estimated by the filter)\n";
+    }
+    std::cout << "  offset temperature coefficients nT/degC "
+              << pm3(run.tc_nT_per_degC, run.tc_sigma_nT_per_degC, 4);
+    if (std::isfinite(run.temperature_ref_degC))
+      std::cout << " (reference " << fixed(run.temperature_ref_degC, 2) << " degC)";
+    std::cout << "\n  aligned to the INS: "
+              << (run.heading_held ? "no (the heading misalignment was held: too little tilt)"
+                                   : "yes")
+              << "\n";
+  } else {
+    std::cout << "  filter not running at the end of the data (" << run.startup_samples
+              << " start-up samples kept; last start's batch verdict " << run.last_init_verdict
+              << ")\n";
+  }
+  if (!o.trace.empty())
+    std::cout << "  trace: " << run.trace_rows << " rows (every " << run.trace_stride
+              << "th row) -> " << o.trace << "\n";
+  print_evaluation(run.eval, run.initialised ? "no reference" : "the filter is not running");
+  std::cout << "  pitch/roll spread " << fixed(run.tilt_spread_deg, 2) << " deg\n";
+  return run.cal;
+}
+
 // The model's field at --site/--date, or nothing; option errors exit 2 with the option named.
 std::optional<geomag::ReferenceField> model_reference(const CalibrateOptions& o,
                                                       geomag::Site* site) {
@@ -504,10 +590,10 @@ void run(const CalibrateOptions& o_in) {
         2, "--method sine needs --fixture plane-normal|housing-y (docs/equations.md E-Sine-4)");
   if (o.method != "sine" && (!o.sweep_xz.empty() || !o.fixture.empty()))
     throw CommandExit(2, "--sweep-xz and --fixture apply only to --method sine");
-  if (o.method != "ekf" && (o.paper_settings || o.float32 || o.passes != 1 || !o.trace.empty()))
-    throw CommandExit(2,
-                      "--paper-settings, --float32, --passes and --trace apply only to "
-                      "--method ekf");
+  if (o.method != "ekf" && (o.paper_settings || o.passes != 1))
+    throw CommandExit(2, "--paper-settings and --passes apply only to --method ekf");
+  if (o.method != "ekf" && o.method != "vector-ekf" && (o.float32 || !o.trace.empty()))
+    throw CommandExit(2, "--float32 and --trace apply only to --method ekf and vector-ekf");
   geomag::Site site;
   const std::optional<geomag::ReferenceField> model = model_reference(o, &site);
   bool has_f_column = false;
@@ -523,6 +609,12 @@ void run(const CalibrateOptions& o_in) {
       cal = run_sine_method(o);
     } else if (o.method == "ekf") {
       cal = run_ekf_method(o);
+    } else if (o.method == "vector-ekf") {
+      if (!o.prior_path.empty() || std::isfinite(o.fix_heading_deg))
+        throw CommandExit(2,
+                          "--prior and --fix-heading-misalignment-deg apply to the batch "
+                          "methods, not --method vector-ekf");
+      cal = run_vector_ekf_method(o);
     } else {
       std::string method = o.method;
       if (method == "auto") {
@@ -573,8 +665,10 @@ void register_calibrate(CLI::App& app) {
       "given.");
   cmd->add_option("--method", opts->method,
                   "auto (li-ml with attitude, else ellipsoid) | li-ml (one-step) | li (plane "
-                  "compression) | li-joint | ellipsoid (no attitude) | sine | ekf")
-      ->check(CLI::IsMember({"auto", "li-ml", "li", "li-joint", "ellipsoid", "sine", "ekf"}))
+                  "compression) | li-joint | ellipsoid (no attitude) | sine | ekf | vector-ekf "
+                  "(online vector filter)")
+      ->check(CLI::IsMember(
+          {"auto", "li-ml", "li", "li-joint", "ellipsoid", "sine", "ekf", "vector-ekf"}))
       ->capture_default_str();
   cmd->add_option("--in", opts->in_path, "Input CSV (for sine: the XY sweep)")->required();
   cmd->add_option("--sweep-xz", opts->sweep_xz, "sine: the XZ-sweep CSV (theta_deg column)");
@@ -609,10 +703,12 @@ void register_calibrate(CLI::App& app) {
                 "ekf: the printed x0/P0/Q/R of Ge 2017 (EkfConfig::paper(); they fail)");
   cmd->add_option("--passes", opts->passes, "ekf: run the data this many times through the filter")
       ->check(CLI::Range(1, 1000));
-  cmd->add_flag("--float32", opts->float32, "ekf: run the filter in float32 (as on the MCU)");
+  cmd->add_flag("--float32", opts->float32,
+                "ekf, vector-ekf: run the filter in float32 (as on the MCU)");
   cmd->add_option(
       "--trace", opts->trace,
-      "ekf: write the state, 1-sigma, NIS and intensity 1-sigma per sample to this CSV");
+      "ekf: write the state, 1-sigma, NIS and intensity 1-sigma per sample to this CSV; "
+      "vector-ekf: the 19 states, their 1-sigmas, NIS and innovations (at most 2000 rows)");
   cmd->add_option("--site", opts->site,
                   "Survey site LAT,LON,ALT (deg, deg, m above the WGS84 ellipsoid): with --date, "
                   "the reference field of a recording without F_nT comes from the WMM2025 model "

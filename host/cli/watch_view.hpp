@@ -100,7 +100,20 @@ inline std::string render_watch(const magvec_lcm::calibration_state& s, const Wa
     f += "health: mag " + std::to_string(h.mag_samples) + " samples, ins " +
          std::to_string(h.att_samples) + ", records " + std::to_string(h.records) +
          ", no attitude " + std::to_string(h.no_attitude) + ", dropouts " +
-         std::to_string(h.dropouts) + "\n";
+         std::to_string(h.dropouts);
+    // Shown when they happen: a reset ADC or a repeating INS is worth the operator's eye.
+    if (h.mag_device_resets != 0) f += ", mag resets " + std::to_string(h.mag_device_resets);
+    if (h.att_duplicates != 0) f += ", ins duplicates " + std::to_string(h.att_duplicates);
+    f += "\n";
+    if (h.scalar_present) {
+      const std::int64_t rejected =
+          h.scalar_malformed + h.scalar_crc_errors + h.scalar_out_of_range + h.scalar_overflows;
+      f += "scalar: " + std::to_string(h.scalar_samples) + " readings, " +
+           std::to_string(rejected) + " lines rejected, " + std::to_string(h.scalar_garbage_bytes) +
+           " garbage bytes, low signal " + std::to_string(h.scalar_low_signal) + ", timeouts " +
+           std::to_string(h.scalar_timeouts) + ", F fallback " +
+           std::to_string(h.scalar_f_fallback) + " samples\n";
+    }
   }
   return f;
 }

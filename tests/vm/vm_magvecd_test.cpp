@@ -663,14 +663,15 @@ TEST_F(MagvecdVm, DaemonRunsOnRealDevicesAndStopsCleanly) {
       ins.mean(), ins.worst, g_run.restarts_s.size(), g_run.late_events, g_run.stop_ms);
   const auto& h = g_run.health;
   std::printf(
-      "health: mag %lld (crc %lld, not fresh %lld, missing %lld, time jumps %lld), att %lld "
-      "(malformed %lld, invalid %lld, gaps %lld, rejected %lld), records %lld, no attitude %lld; "
-      "%zu attitude messages\n",
+      "health: mag %lld (crc %lld, not fresh %lld, missing %lld, time jumps %lld, device resets "
+      "%lld), att %lld (malformed %lld, invalid %lld, gaps %lld, rejected %lld, duplicates %lld), "
+      "records %lld, no attitude %lld; %zu attitude messages\n",
       static_cast<long long>(h.mag_samples), static_cast<long long>(h.mag_crc_errors),
       static_cast<long long>(h.mag_not_fresh), static_cast<long long>(h.mag_missing),
-      static_cast<long long>(h.mag_time_jumps), static_cast<long long>(h.att_samples),
-      static_cast<long long>(h.att_malformed), static_cast<long long>(h.att_invalid),
-      static_cast<long long>(h.att_gaps), static_cast<long long>(h.att_rejected),
+      static_cast<long long>(h.mag_time_jumps), static_cast<long long>(h.mag_device_resets),
+      static_cast<long long>(h.att_samples), static_cast<long long>(h.att_malformed),
+      static_cast<long long>(h.att_invalid), static_cast<long long>(h.att_gaps),
+      static_cast<long long>(h.att_rejected), static_cast<long long>(h.att_duplicates),
       static_cast<long long>(h.records), static_cast<long long>(h.no_attitude), g_run.attitudes);
   std::array<std::size_t, 8> flag_count{};
   for (const OutputSample& o : g_run.outputs)

@@ -12,6 +12,7 @@
 #include <cstdio>
 #include <cstring>
 #include <filesystem>
+#include <optional>
 #include <utility>
 
 #include "magvec/drivers/linux/linux_clock.hpp"
@@ -410,21 +411,14 @@ void Daemon::publish_health() {
   auto i64 = [](std::uint64_t v) { return static_cast<std::int64_t>(v); };
   h.t_us = i64(last_t_us_);
   h.uptime_ms = i64((mono_us() - start_us_) / 1000);
-  const hal::MagCounters& mc = devices_->mag_counters();
-  h.mag_samples = mc.samples;
-  h.mag_crc_errors = mc.crc_errors;
-  h.mag_malformed = mc.malformed;
-  h.mag_bus_errors = mc.bus_errors;
-  h.mag_timeouts = mc.timeouts;
-  h.mag_saturated = mc.saturated;
+  const std::optional<ScalarHealth> scalar = devices_->scalar_health();
+  set_device_health(h, devices_->mag_counters(), devices_->attitude_counters(),
+                    scalar ? &*scalar : nullptr);
   const hil::HilCounters& c = ep_->pipeline()->counters();
   h.mag_read_errors = i64(c.mag_read_errors);
   h.mag_not_fresh = i64(c.mag_not_fresh);
   h.mag_missing = i64(c.mag_missing);
   h.mag_time_jumps = i64(c.mag_time_jumps);
-  const hal::AttitudeCounters& ac = devices_->attitude_counters();
-  h.att_samples = ac.samples;
-  h.att_malformed = ac.malformed;
   h.att_invalid = i64(c.att_invalid);
   h.att_gaps = i64(c.att_gaps);
   h.att_time_jumps = i64(c.att_time_jumps);

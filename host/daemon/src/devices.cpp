@@ -233,6 +233,18 @@ class RealDevices final : public Devices {
   }
   const hal::MagCounters& mag_counters() const override { return mag_->counters(); }
   const hal::AttitudeCounters& attitude_counters() const override { return ins_->counters(); }
+  std::optional<ScalarHealth> scalar_health() const override {
+    const pipeline::ScalarAlignerCounters* a = feed_->aligner_counters();
+    if (a == nullptr) return std::nullopt;
+    ScalarHealth h;
+    h.source = scalar_->counters();
+    h.read_errors = feed_->scalar_read_errors();
+    h.timeouts = feed_->scalar_timeouts();
+    h.f_interpolated = a->interpolated;
+    h.f_nearest = a->nearest;
+    h.f_fallback = a->fallback;
+    return h;
+  }
   std::string describe() const override { return describe_; }
 
  private:

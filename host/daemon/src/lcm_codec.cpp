@@ -272,4 +272,35 @@ bool bit_identical(const hal::OutputRecord& a, const hal::OutputRecord& b) noexc
          same(a.sigma_enu_nT, b.sigma_enu_nT);
 }
 
+void set_device_health(magvec_lcm::health& h, const hal::MagCounters& mag,
+                       const hal::AttitudeCounters& att, const ScalarHealth* scalar) noexcept {
+  auto i64 = [](std::uint64_t v) { return static_cast<std::int64_t>(v); };
+  h.mag_samples = mag.samples;
+  h.mag_crc_errors = mag.crc_errors;
+  h.mag_malformed = mag.malformed;
+  h.mag_bus_errors = mag.bus_errors;
+  h.mag_timeouts = mag.timeouts;
+  h.mag_saturated = mag.saturated;
+  h.mag_device_resets = mag.device_resets;
+  h.att_samples = att.samples;
+  h.att_malformed = att.malformed;
+  h.att_duplicates = att.duplicates;
+  h.scalar_present = scalar != nullptr;
+  if (scalar == nullptr) return;
+  const hal::ScalarCounters& sc = scalar->source;
+  h.scalar_samples = sc.samples;
+  h.scalar_malformed = sc.malformed;
+  h.scalar_crc_errors = sc.crc_errors;
+  h.scalar_out_of_range = sc.out_of_range;
+  h.scalar_overflows = sc.overflows;
+  h.scalar_garbage_bytes = sc.garbage_bytes;
+  h.scalar_low_signal = sc.low_signal;
+  h.scalar_bus_errors = sc.bus_errors;
+  h.scalar_read_errors = i64(scalar->read_errors);
+  h.scalar_timeouts = i64(scalar->timeouts);
+  h.scalar_f_interpolated = i64(scalar->f_interpolated);
+  h.scalar_f_nearest = i64(scalar->f_nearest);
+  h.scalar_f_fallback = i64(scalar->f_fallback);
+}
+
 }  // namespace magvec::host::daemon

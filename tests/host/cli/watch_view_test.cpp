@@ -111,6 +111,31 @@ TEST(WatchView, StaleStateAndHealth) {
   const std::string f = render_watch(collecting(), c);
   EXPECT_NE(f.find("(no state for 7 s)"), std::string::npos) << f;
   EXPECT_NE(f.find("health: mag 1234 samples, ins 617, records 1200"), std::string::npos) << f;
+  EXPECT_EQ(f.find("mag resets"), std::string::npos) << "shown only when there are some";
+  EXPECT_EQ(f.find("scalar:"), std::string::npos) << "no scalar magnetometer";
+}
+
+TEST(WatchView, ResetsDuplicatesAndTheScalarMagnetometer) {
+  magvec_lcm::health h{};
+  h.mag_samples = 1234;
+  h.mag_device_resets = 2;
+  h.att_duplicates = 5;
+  h.scalar_present = true;
+  h.scalar_samples = 61;
+  h.scalar_malformed = 3;
+  h.scalar_out_of_range = 1;
+  h.scalar_garbage_bytes = 40;
+  h.scalar_low_signal = 4;
+  h.scalar_timeouts = 7;
+  h.scalar_f_fallback = 90;
+  WatchContext c;
+  c.health = &h;
+  const std::string f = render_watch(collecting(), c);
+  EXPECT_NE(f.find("dropouts 0, mag resets 2, ins duplicates 5\n"), std::string::npos) << f;
+  EXPECT_NE(f.find("scalar: 61 readings, 4 lines rejected, 40 garbage bytes, low signal 4, "
+                   "timeouts 7, F fallback 90 samples\n"),
+            std::string::npos)
+      << f;
 }
 
 }  // namespace

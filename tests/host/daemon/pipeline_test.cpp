@@ -631,6 +631,71 @@ TEST(DeviceFeed, ProcessingOnArrivalHoldsTheAttitude) {
   EXPECT_LT(o.interpolated, 10u);
 }
 
+// A silent scalar magnetometer (stuck or unplugged) is counted: one timeout per max_gap_us of
+// magnetometer time without a reading, and the samples of the silence take the fallback F.
+TEST(DeviceFeed, AScalarSilenceIsCountedAsTimeouts) {
+  struct FakeScalar final : hal::ScalarSource {
+    FakeWorld& w;
+    std::deque<std::pair<std::uint64_t, hal::ScalarSample>> lines;  // arrival time, reading
+    hal::ScalarCounters c{};
+    explicit FakeScalar(FakeWorld& world) : w(world) {}
+    hal::Status read(hal::ScalarSample& out, std::uint32_t) noexcept override {
+      if (lines.empty() || lines.front().first > w.now) return hal::Status::kTimeout;
+      out = lines.front().second;
+      lines.pop_front();
+      ++c.samples;
+      return hal::Status::kOk;
+    }
+    const hal::ScalarCounters& counters() const noexcept override { return c; }
+  };
+  struct Handler {
+    std::vector<double> f;
+    void on_attitude(const hal::AttitudeSample&) {}
+    void on_magnetometer(const hal::MagnetometerSample&, double f_nT) { f.push_back(f_nT); }
+    void on_read_error(hal::Status) {}
+  };
+  auto run = [](bool silence, std::uint64_t* timeouts, std::uint64_t* fallback) {
+    constexpr std::uint64_t kT0 = 1'000'000;
+    FakeWorld w;
+    FakeMag mag(w);
+    FakeIns ins(w);
+    FakeScalar scalar(w);
+    for (std::uint64_t t = kT0; t < kT0 + 2'000'000; t += kMagPeriodUs) {
+      hal::MagnetometerSample s;
+      s.t_us = t;
+      w.mag.push_back({t, s});
+    }
+    // 10 Hz readings, each arriving 20 ms after its time; silent from 0.5 s to 1.4 s.
+    for (std::uint64_t t = kT0; t < kT0 + 2'100'000; t += 100'000) {
+      if (silence && t > kT0 + 500'000 && t < kT0 + 1'400'000) continue;
+      hal::ScalarSample r;
+      r.t_us = t;
+      r.f_nT = 50'000;
+      scalar.lines.push_back({t + 20'000, r});
+    }
+    pipeline::ScalarAlignerConfig align;  // max_gap_us 250 ms
+    align.fallback_nT = 49'000;
+    DeviceFeed feed(mag, ins, scalar, align);
+    Handler h;
+    while (feed.poll(h, 0) == FeedResult::kSample) {
+    }
+    w.now = std::numeric_limits<std::uint64_t>::max();
+    (void)feed.poll(h, 0);
+    feed.flush(h);
+    EXPECT_EQ(h.f.size(), 400u);
+    *timeouts = feed.scalar_timeouts();
+    *fallback = feed.aligner_counters()->fallback;
+  };
+  std::uint64_t timeouts = 0, fallback = 0;
+  run(false, &timeouts, &fallback);
+  EXPECT_EQ(timeouts, 0u);
+  EXPECT_EQ(fallback, 0u);
+  // 0.9 s without a reading (0.5 s to 1.4 s): counted at 0.75, 1.0 and 1.25 s.
+  run(true, &timeouts, &fallback);
+  EXPECT_EQ(timeouts, 3u);
+  EXPECT_GT(fallback, 0u);
+}
+
 // The time offset of an installed calibration reaches the pipeline through SET_ACTIVE (logged,
 // so a replay applies it too); a configured devices.ins.time_offset_s fixes it.
 TEST(DaemonPipeline, TimeOffsetFromSetActiveUnlessConfigured) {

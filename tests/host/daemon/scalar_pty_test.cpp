@@ -15,6 +15,7 @@
 #include <cstdlib>
 #include <deque>
 #include <filesystem>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -185,6 +186,18 @@ TEST_F(ScalarPty, CalibratesAndValidatesAgainstTheTimeAlignedScalarField) {
   }
   devices->flush(h);
   d.stop();
+
+  // The health message's scalar part (Devices::scalar_health): the lines written were read
+  // (the last one may still be in the pty when the loop ends), none rejected, no silence, and
+  // every sample got its F from a reading.
+  const std::optional<ScalarHealth> health = devices->scalar_health();
+  ASSERT_TRUE(health.has_value());
+  EXPECT_LE(health->source.samples, g882.injected().lines);
+  EXPECT_GE(health->source.samples + 1, g882.injected().lines);
+  EXPECT_EQ(health->source.malformed + health->source.garbage_bytes + health->read_errors, 0u);
+  EXPECT_EQ(health->timeouts, 0u);
+  EXPECT_EQ(health->f_interpolated + health->f_nearest + health->f_fallback, h.f_nT.size());
+  EXPECT_GT(health->f_interpolated, h.f_nT.size() * 9 / 10);
 
   // Every sample was delivered, in order, with F at its own time.
   ASSERT_EQ(h.f_nT.size(), truth.size());

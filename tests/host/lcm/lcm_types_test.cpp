@@ -154,6 +154,72 @@ TEST_F(LcmTypes, HealthRoundTrip) {
   EXPECT_EQ(r.publish_errors, 8);
 }
 
+// The device counters of the health message: every source counter in its own field, the scalar
+// part only with a scalar magnetometer.
+TEST_F(LcmTypes, HealthCarriesEveryDeviceCounter) {
+  hal::MagCounters mc{};
+  mc.samples = 10;
+  mc.crc_errors = 11;
+  mc.malformed = 12;
+  mc.bus_errors = 13;
+  mc.timeouts = 14;
+  mc.saturated = 15;
+  mc.device_resets = 16;
+  hal::AttitudeCounters ac{};
+  ac.samples = 20;
+  ac.malformed = 21;
+  ac.duplicates = 22;
+  magvec_lcm::health none{};
+  set_device_health(none, mc, ac, nullptr);
+  const auto n = round_trip(lcm_, none, "T_HEALTH");
+  EXPECT_EQ(n.mag_samples, 10);
+  EXPECT_EQ(n.mag_crc_errors, 11);
+  EXPECT_EQ(n.mag_malformed, 12);
+  EXPECT_EQ(n.mag_bus_errors, 13);
+  EXPECT_EQ(n.mag_timeouts, 14);
+  EXPECT_EQ(n.mag_saturated, 15);
+  EXPECT_EQ(n.mag_device_resets, 16);
+  EXPECT_EQ(n.att_samples, 20);
+  EXPECT_EQ(n.att_malformed, 21);
+  EXPECT_EQ(n.att_duplicates, 22);
+  EXPECT_FALSE(n.scalar_present);
+  EXPECT_EQ(n.scalar_samples, 0);
+
+  ScalarHealth sh;
+  sh.source.samples = 30;
+  sh.source.malformed = 31;
+  sh.source.crc_errors = 32;
+  sh.source.out_of_range = 33;
+  sh.source.overflows = 34;
+  sh.source.garbage_bytes = 35;
+  sh.source.low_signal = 36;
+  sh.source.bus_errors = 37;
+  sh.read_errors = 38;
+  sh.timeouts = 39;
+  sh.f_interpolated = 40;
+  sh.f_nearest = 41;
+  sh.f_fallback = 42;
+  magvec_lcm::health with{};
+  set_device_health(with, mc, ac, &sh);
+  const auto w = round_trip(lcm_, with, "T_HEALTH");
+  EXPECT_TRUE(w.scalar_present);
+  EXPECT_EQ(w.mag_device_resets, 16);
+  EXPECT_EQ(w.att_duplicates, 22);
+  EXPECT_EQ(w.scalar_samples, 30);
+  EXPECT_EQ(w.scalar_malformed, 31);
+  EXPECT_EQ(w.scalar_crc_errors, 32);
+  EXPECT_EQ(w.scalar_out_of_range, 33);
+  EXPECT_EQ(w.scalar_overflows, 34);
+  EXPECT_EQ(w.scalar_garbage_bytes, 35);
+  EXPECT_EQ(w.scalar_low_signal, 36);
+  EXPECT_EQ(w.scalar_bus_errors, 37);
+  EXPECT_EQ(w.scalar_read_errors, 38);
+  EXPECT_EQ(w.scalar_timeouts, 39);
+  EXPECT_EQ(w.scalar_f_interpolated, 40);
+  EXPECT_EQ(w.scalar_f_nearest, 41);
+  EXPECT_EQ(w.scalar_f_fallback, 42);
+}
+
 TEST_F(LcmTypes, PipelineEventsRoundTrip) {
   const auto s = round_trip(lcm_, session_start_event(1, "[calibration]\nmode = \"ekf\"\n"), "T_P");
   EXPECT_EQ(

@@ -45,7 +45,8 @@ class DeviceFeed {
         ins_(ins),
         reference_nT_(align.fallback_nT),
         scalar_(&scalar),
-        aligner_(std::make_unique<Aligner>(align)) {}
+        aligner_(std::make_unique<Aligner>(align)),
+        max_gap_us_(align.max_gap_us) {}
 
   // Handler: on_attitude(const hal::AttitudeSample&), on_magnetometer(const
   // hal::MagnetometerSample&, double f_ref_nT), on_read_error(hal::Status).
@@ -59,6 +60,7 @@ class DeviceFeed {
     drain_scalar(h);
     if (st == hal::Status::kOk) {
       if (aligner_) {
+        count_scalar_silence(s.t_us);
         aligner_->on_magnetometer(
             s, [&h](const hal::MagnetometerSample& m, double f) { h.on_magnetometer(m, f); });
       } else {
@@ -85,6 +87,10 @@ class DeviceFeed {
   }
   // Scalar lines the source rejected (its counters say why) or transport failures.
   std::uint64_t scalar_read_errors() const noexcept { return scalar_read_errors_; }
+  // Silences of the scalar magnetometer: every max_gap_us of magnetometer time (the longest gap
+  // the aligner interpolates across) without a new reading counts once, so a stuck or
+  // unplugged instrument shows as a growing count, not only as samples with the fallback F.
+  std::uint64_t scalar_timeouts() const noexcept { return scalar_timeouts_; }
 
  private:
   // Every reading received so far; rejected lines are counted by the source (and here), a
@@ -96,6 +102,7 @@ class DeviceFeed {
     for (int guard = 0; guard < kMaxPerDrain; ++guard) {
       const hal::Status st = scalar_->read(r, 0);
       if (st == hal::Status::kOk) {
+        if (silence_from_us_ == kNoTime || r.t_us > silence_from_us_) silence_from_us_ = r.t_us;
         aligner_->on_scalar(
             r, [&h](const hal::MagnetometerSample& m, double f) { h.on_magnetometer(m, f); });
         continue;
@@ -103,6 +110,14 @@ class DeviceFeed {
       if (st == hal::Status::kTimeout || st == hal::Status::kNoData) return;
       ++scalar_read_errors_;
       if (st == hal::Status::kBusError) return;
+    }
+  }
+  void count_scalar_silence(std::uint64_t t_us) noexcept {
+    if (silence_from_us_ == kNoTime) silence_from_us_ = t_us;
+    const std::uint64_t gap_us = max_gap_us_ > 0 ? max_gap_us_ : 1;
+    while (t_us >= silence_from_us_ + gap_us) {
+      ++scalar_timeouts_;
+      silence_from_us_ += gap_us;
     }
   }
   template <typename Handler>
@@ -119,6 +134,10 @@ class DeviceFeed {
   hal::ScalarSource* scalar_{nullptr};
   std::unique_ptr<Aligner> aligner_;
   std::uint64_t scalar_read_errors_{0};
+  static constexpr std::uint64_t kNoTime = ~std::uint64_t{0};
+  std::uint64_t max_gap_us_{0};
+  std::uint64_t silence_from_us_{kNoTime};  // newest reading, or the first sample, or after a count
+  std::uint64_t scalar_timeouts_{0};
 };
 
 }  // namespace magvec::host::daemon

@@ -10,11 +10,13 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 
 #include "magvec/hal/attitude_source.hpp"
 #include "magvec/hal/magnetometer_source.hpp"
 #include "magvec/host/daemon/config.hpp"
+#include "magvec/host/daemon/scalar_health.hpp"
 
 namespace magvec::host::daemon {
 
@@ -43,6 +45,8 @@ class Devices {
   virtual void flush(EventHandler& /*h*/) {}
   virtual const hal::MagCounters& mag_counters() const = 0;
   virtual const hal::AttitudeCounters& attitude_counters() const = 0;
+  // The scalar magnetometer's counters; nullopt without one.
+  virtual std::optional<ScalarHealth> scalar_health() const { return std::nullopt; }
   virtual std::string describe() const = 0;
 };
 

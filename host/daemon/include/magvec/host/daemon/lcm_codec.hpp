@@ -19,6 +19,7 @@
 #include "magvec/hal/magnetometer_source.hpp"
 #include "magvec/hal/record_sink.hpp"
 #include "magvec/host/daemon/pipeline.hpp"
+#include "magvec/host/daemon/scalar_health.hpp"
 
 namespace magvec::host::daemon {
 
@@ -51,6 +52,12 @@ SolveResult solve_result_from(const magvec_lcm::pipeline_event& e) noexcept;
 
 magvec_lcm::calibration_state to_lcm(const CalibrationStatus& s, std::uint64_t t_us,
                                      std::uint32_t persisted_cal_id);
+
+// The device counters of a health message: the magnetometer's, the INS driver's and, when
+// `scalar` is given, the scalar magnetometer's (scalar_present; all 0 and false without one).
+// The pipeline's, the loop's and the link's counters are the daemon's to set.
+void set_device_health(magvec_lcm::health& h, const hal::MagCounters& mag,
+                       const hal::AttitudeCounters& att, const ScalarHealth* scalar) noexcept;
 
 // Bitwise equality of two records (NaN == NaN when the bits match).
 bool bit_identical(const hal::OutputRecord& a, const hal::OutputRecord& b) noexcept;

@@ -3,6 +3,7 @@
 
 #include <cmath>
 #include <limits>
+#include <string_view>
 
 namespace magvec::drivers {
 namespace {
@@ -45,49 +46,24 @@ bool julian_ok(const char* b, const char* e) noexcept {
 
 hal::Status G882LineDecoder::push(std::uint8_t byte, std::uint64_t t_us,
                                   hal::ScalarSample& out) noexcept {
-  const char c = static_cast<char>(byte);
-  if (c == config_.preamble) {
-    // A preamble inside a line restarts it: the partial line is lost, the new one recovered.
-    hal::Status result = hal::Status::kNoData;
-    if (state_ == State::kInLine) {
-      ++counters_.malformed;
-      counters_.garbage_bytes += static_cast<std::uint32_t>(len_ + 1);
-      result = hal::Status::kMalformed;
-    }
-    state_ = State::kInLine;
-    len_ = 0;
-    line_t_us_ = t_us;
-    return result;
-  }
-  switch (state_) {
-    case State::kIdle:
-      ++counters_.garbage_bytes;
+  // A preamble inside a line restarts it: the partial line is lost, the new one recovered.
+  switch (framer_.push(static_cast<char>(byte), t_us, counters_)) {
+    case LineEvent::kNone:
       return hal::Status::kNoData;
-    case State::kDiscard:
-      ++counters_.garbage_bytes;
-      if (c == '\n') state_ = State::kIdle;
-      return hal::Status::kNoData;
-    case State::kInLine:
-      break;
+    case LineEvent::kLine:
+      return finish_line(out);
+    case LineEvent::kRestarted:
+      return hal::Status::kMalformed;
+    case LineEvent::kOverflow:
+      return hal::Status::kOverflow;
   }
-  if (c == '\n') {
-    state_ = State::kIdle;
-    return finish_line(out);
-  }
-  if (len_ == kMaxLine) {
-    ++counters_.overflows;
-    counters_.garbage_bytes += static_cast<std::uint32_t>(len_ + 1);
-    state_ = State::kDiscard;
-    return hal::Status::kOverflow;
-  }
-  line_[len_++] = c;
   return hal::Status::kNoData;
 }
 
 hal::Status G882LineDecoder::finish_line(hal::ScalarSample& out) noexcept {
-  std::size_t n = len_;
-  if (n > 0 && line_[n - 1] == '\r') --n;
-  const char* p = line_.data();
+  const std::string_view line = framer_.line();
+  const std::size_t n = line.size();
+  const char* p = line.data();
   const char* const end = p + n;
   const auto malformed = [this] {
     ++counters_.malformed;
@@ -112,14 +88,14 @@ hal::Status G882LineDecoder::finish_line(hal::ScalarSample& out) noexcept {
   if (p != end) {
     if (!config_.julian_time || *p != ',' || !julian_ok(p + 1, end)) return malformed();
   }
-  const double f_nT = (line_[0] == '1' ? 100000.0 : 0.0) + static_cast<double>(whole) +
+  const double f_nT = (line[0] == '1' ? 100000.0 : 0.0) + static_cast<double>(whole) +
                       static_cast<double>(milli) / 1000.0;
   if (!(f_nT >= config_.min_field_nT && f_nT <= config_.max_field_nT)) {
     ++counters_.out_of_range;
     return hal::Status::kMalformed;
   }
   out = hal::ScalarSample{};
-  out.t_us = line_t_us_;
+  out.t_us = framer_.line_t_us();
   out.f_nT = f_nT;
   out.quality = signal >= 0 ? static_cast<double>(signal) / kSignalFullScale
                             : std::numeric_limits<double>::quiet_NaN();
@@ -169,40 +145,6 @@ std::size_t G882LineDecoder::encode(double f_nT, std::uint16_t signal,
   out[i++] = '\r';
   out[i++] = '\n';
   return i;
-}
-
-hal::Status SerialScalarSource::take_from_buffer(hal::ScalarSample& out) noexcept {
-  while (pos_ < len_) {
-    const hal::Status s = decoder_.push(buf_[pos_++], rx_t_us_, out);
-    if (s != hal::Status::kNoData) return s;
-  }
-  return hal::Status::kNoData;
-}
-
-hal::Status SerialScalarSource::read(hal::ScalarSample& out, std::uint32_t timeout_us) noexcept {
-  // Bounded work per call: at most kMaxChunks reads (the first may wait, the rest poll).
-  for (int attempt = 0; attempt < kMaxChunks; ++attempt) {
-    const hal::Status t = take_from_buffer(out);
-    if (t != hal::Status::kNoData) return t;
-    std::size_t n = 0;
-    const hal::Status s = port_.read(buf_, n, attempt == 0 ? timeout_us : 0);
-    if (s != hal::Status::kOk && s != hal::Status::kTimeout && s != hal::Status::kNoData) {
-      ++bus_errors_;
-      return s;
-    }
-    if (n == 0) return attempt == 0 ? hal::Status::kTimeout : hal::Status::kNoData;
-    const std::uint64_t now = clock_.now_us();
-    rx_t_us_ = now > latency_us_ ? now - latency_us_ : 0;
-    pos_ = 0;
-    len_ = n;
-  }
-  return take_from_buffer(out);
-}
-
-const hal::ScalarCounters& SerialScalarSource::counters() const noexcept {
-  counters_ = decoder_.counters();
-  counters_.bus_errors += bus_errors_;
-  return counters_;
 }
 
 }  // namespace magvec::drivers

@@ -2,6 +2,7 @@
 #include "magvec/drivers/serial_fluxgate.hpp"
 
 #include <cmath>
+#include <string_view>
 
 #include "magvec/drivers/crc.hpp"
 
@@ -101,72 +102,37 @@ std::size_t format_fixed3(double v, std::span<char> out) noexcept {
 
 }  // namespace
 
-void AsciiLineDecoder::start_line(std::uint64_t t_us) noexcept {
-  state_ = State::kInLine;
-  len_ = 0;
-  line_t_us_ = t_us;
-}
-
 hal::Status AsciiLineDecoder::push(std::uint8_t byte, std::uint64_t t_us,
                                    hal::MagnetometerSample& out) noexcept {
-  const char c = static_cast<char>(byte);
-  const bool has_start = config_.start_char != '\0';
-  if (has_start && c == config_.start_char) {
-    hal::Status result = hal::Status::kNoData;
-    if (state_ == State::kInLine) {  // a line restarted before its end: the partial one is lost
-      ++counters_.malformed;
-      counters_.garbage_bytes += static_cast<std::uint32_t>(len_ + 1);
-      result = hal::Status::kMalformed;
-    }
-    start_line(t_us);
-    return result;
-  }
-  switch (state_) {
-    case State::kIdle:
-      if (has_start) {
-        ++counters_.garbage_bytes;
-        return hal::Status::kNoData;
-      }
-      if (c == '\n' || c == '\r') return hal::Status::kNoData;  // empty line
-      start_line(t_us);
-      break;
-    case State::kDiscard:
-      if (c == '\n') state_ = State::kIdle;
-      ++counters_.garbage_bytes;
+  switch (framer_.push(static_cast<char>(byte), t_us, counters_)) {
+    case LineEvent::kNone:
       return hal::Status::kNoData;
-    case State::kInLine:
-      break;
+    case LineEvent::kLine:
+      return finish_line(out);
+    case LineEvent::kRestarted:
+      return hal::Status::kMalformed;
+    case LineEvent::kOverflow:
+      return hal::Status::kOverflow;
   }
-  if (c == '\n') {
-    state_ = State::kIdle;
-    return finish_line(out);
-  }
-  if (len_ == kMaxLine) {
-    ++counters_.overflows;
-    counters_.garbage_bytes += static_cast<std::uint32_t>(len_ + 1);
-    state_ = State::kDiscard;
-    return hal::Status::kOverflow;
-  }
-  line_[len_++] = c;
   return hal::Status::kNoData;
 }
 
 hal::Status AsciiLineDecoder::finish_line(hal::MagnetometerSample& out) noexcept {
-  std::size_t n = len_;
-  if (n > 0 && line_[n - 1] == '\r') --n;
+  const std::string_view line = framer_.line();
+  const std::size_t n = line.size();
   // Checksum: "*hh" at the end.
-  const char* begin = line_.data();
-  const char* end = line_.data() + n;
+  const char* begin = line.data();
+  const char* end = line.data() + n;
   bool has_checksum = false;
-  if (n >= 3 && line_[n - 3] == '*') {
-    const int hi = hex_value(line_[n - 2]);
-    const int lo = hex_value(line_[n - 1]);
+  if (n >= 3 && line[n - 3] == '*') {
+    const int hi = hex_value(line[n - 2]);
+    const int lo = hex_value(line[n - 1]);
     if (hi < 0 || lo < 0) {
       ++counters_.malformed;
       return hal::Status::kMalformed;
     }
     has_checksum = true;
-    end = line_.data() + n - 3;
+    end = line.data() + n - 3;
     const std::uint8_t expected = static_cast<std::uint8_t>(hi * 16 + lo);
     std::uint8_t x = 0;
     for (const char* p = begin; p != end; ++p)
@@ -230,7 +196,7 @@ hal::Status AsciiLineDecoder::finish_line(hal::MagnetometerSample& out) noexcept
     out.m_nT[axis] = v[axis] * config_.scale;
     out.raw[axis] = 0;
   }
-  out.t_us = line_t_us_;
+  out.t_us = framer_.line_t_us();
   out.flags = 0;
   out.sequence = sequence_++;
   ++counters_.samples;

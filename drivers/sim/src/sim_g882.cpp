@@ -11,31 +11,17 @@ constexpr std::uint64_t kStreamNoise = 0xC5A1A901ULL;
 constexpr std::uint64_t kStreamGarbage = 0xC5A1A902ULL;
 constexpr std::uint64_t kStreamTruncate = 0xC5A1A903ULL;
 
-std::uint64_t mix(std::uint64_t seed, std::uint64_t stream) noexcept {
-  SplitMix64 sm(seed ^ (stream * 0x9E3779B97F4A7C15ULL));
-  return sm.next();
-}
-
-bool draw(Xoshiro256& rng, double p) noexcept {
-  return p > 0 && rng.uniform() < p;
-}
-
 }  // namespace
 
 SimG882::SimG882(const SimG882Config& config) noexcept
     : config_(config),
       encoder_(config.line),
-      noise_(mix(config.seed, kStreamNoise)),
-      garbage_rng_(mix(config.seed, kStreamGarbage)),
-      truncate_rng_(mix(config.seed, kStreamTruncate)) {}
+      noise_(device_stream_seed(config.seed, kStreamNoise)),
+      garbage_rng_(device_stream_seed(config.seed, kStreamGarbage)),
+      truncate_rng_(device_stream_seed(config.seed, kStreamTruncate)) {}
 
 void SimG882::put(std::uint8_t b) noexcept {
-  if (count_ == kBuffer) {
-    ++injected_.overflow_bytes;
-    return;
-  }
-  ring_[(head_ + count_) % kBuffer] = b;
-  ++count_;
+  if (!wire_.put(b)) ++injected_.overflow_bytes;
 }
 
 bool SimG882::transmit(const SimSample& s, double* f_nT) noexcept {
@@ -80,13 +66,7 @@ bool SimG882::transmit(const SimSample& s, double* f_nT) noexcept {
 
 hal::Status SimG882::read(std::span<std::uint8_t> buf, std::size_t& n_read,
                           std::uint32_t /*timeout_us*/) noexcept {
-  n_read = 0;
-  while (n_read < buf.size() && count_ > 0) {
-    buf[n_read++] = ring_[head_];
-    head_ = (head_ + 1) % kBuffer;
-    --count_;
-  }
-  return n_read > 0 ? hal::Status::kOk : hal::Status::kTimeout;
+  return wire_.read(buf, n_read);
 }
 
 hal::Status SimG882::write(std::span<const std::uint8_t> data, std::size_t& n_written) noexcept {

@@ -35,6 +35,7 @@
 #include <cstdint>
 #include <span>
 
+#include "magvec/drivers/serial_framing.hpp"
 #include "magvec/hal/clock.hpp"
 #include "magvec/hal/scalar_source.hpp"
 #include "magvec/hal/serial_port.hpp"
@@ -58,7 +59,8 @@ class G882LineDecoder {
   static constexpr std::uint8_t kMaxAnalogChannels = 8;
   static constexpr double kSignalFullScale = 9999.0;
 
-  explicit G882LineDecoder(const G882LineConfig& config) noexcept : config_(config) {}
+  explicit G882LineDecoder(const G882LineConfig& config) noexcept
+      : config_(config), framer_(config.preamble) {}
 
   // Consumes one byte received at t_us. kOk when it completed a valid line (out filled, out.t_us
   // = time of the line's preamble byte); kNoData when more bytes are needed; kMalformed (also for
@@ -74,47 +76,35 @@ class G882LineDecoder {
   std::size_t encode(double f_nT, std::uint16_t signal, std::span<char> out) const noexcept;
 
  private:
-  enum class State : std::uint8_t { kIdle, kInLine, kDiscard };
   hal::Status finish_line(hal::ScalarSample& out) noexcept;
 
   G882LineConfig config_;
   hal::ScalarCounters counters_{};
-  State state_{State::kIdle};
-  std::array<char, kMaxLine> line_{};
-  std::size_t len_{0};
-  std::uint64_t line_t_us_{0};
+  LineFramer<kMaxLine> framer_;
   std::uint32_t sequence_{0};
 };
 
 // hal::ScalarSource over a hal::SerialPort (a termios tty on Linux, a simulated instrument in
-// tests). Bytes are pulled in chunks; the receive time (clock) minus latency_us becomes the time
-// stamp. A rejected line is returned as its status (as SerialFluxgate does), the bytes after it
-// stay for the next call.
+// tests) through SerialPump: chunked reads, the receive time minus latency_us becomes the time
+// stamp, a rejected line is returned as its status and the bytes after it stay for the next call.
 class SerialScalarSource final : public hal::ScalarSource {
  public:
-  static constexpr std::size_t kChunk = 64;
-  static constexpr int kMaxChunks = 16;
-
   SerialScalarSource(hal::SerialPort& port, const hal::Clock& clock, G882LineDecoder decoder,
                      std::uint32_t latency_us = 0) noexcept
-      : port_(port), clock_(clock), decoder_(decoder), latency_us_(latency_us) {}
+      : pump_(port, clock, decoder, latency_us) {}
 
-  hal::Status read(hal::ScalarSample& out, std::uint32_t timeout_us) noexcept override;
-  const hal::ScalarCounters& counters() const noexcept override;
-  const G882LineDecoder& decoder() const noexcept { return decoder_; }
+  hal::Status read(hal::ScalarSample& out, std::uint32_t timeout_us) noexcept override {
+    return pump_.read(out, timeout_us);
+  }
+  const hal::ScalarCounters& counters() const noexcept override {
+    counters_ = pump_.decoder().counters();
+    counters_.bus_errors += pump_.bus_errors();
+    return counters_;
+  }
+  const G882LineDecoder& decoder() const noexcept { return pump_.decoder(); }
 
  private:
-  hal::Status take_from_buffer(hal::ScalarSample& out) noexcept;
-
-  hal::SerialPort& port_;
-  const hal::Clock& clock_;
-  G882LineDecoder decoder_;
-  std::uint32_t latency_us_;
-  std::array<std::uint8_t, kChunk> buf_{};
-  std::size_t pos_{0};
-  std::size_t len_{0};
-  std::uint64_t rx_t_us_{0};
-  std::uint32_t bus_errors_{0};
+  SerialPump<G882LineDecoder, hal::ScalarSample> pump_;
   mutable hal::ScalarCounters counters_{};
 };
 

@@ -34,6 +34,7 @@
 #include <cstdint>
 #include <span>
 
+#include "magvec/drivers/serial_framing.hpp"
 #include "magvec/hal/clock.hpp"
 #include "magvec/hal/magnetometer_source.hpp"
 #include "magvec/hal/serial_port.hpp"
@@ -57,7 +58,8 @@ class AsciiLineDecoder {
   static constexpr std::size_t kMaxLine = 96;  // bytes between start and '\n' (exclusive)
   static constexpr std::size_t kMaxFields = 12;
 
-  explicit AsciiLineDecoder(const AsciiLineConfig& config) noexcept : config_(config) {}
+  explicit AsciiLineDecoder(const AsciiLineConfig& config) noexcept
+      : config_(config), framer_(config.start_char) {}
 
   // Consumes one byte received at t_us. Returns kOk when it completed a valid line (out filled,
   // out.t_us = time of the line's first byte), kNoData when more bytes are needed, or the reason a
@@ -83,16 +85,11 @@ class AsciiLineDecoder {
                      std::span<char> out) const noexcept;
 
  private:
-  enum class State : std::uint8_t { kIdle, kInLine, kDiscard };
   hal::Status finish_line(hal::MagnetometerSample& out) noexcept;
-  void start_line(std::uint64_t t_us) noexcept;
 
   AsciiLineConfig config_;
   hal::MagCounters counters_{};
-  State state_{State::kIdle};
-  std::array<char, kMaxLine> line_{};
-  std::size_t len_{0};
-  std::uint64_t line_t_us_{0};
+  LineFramer<kMaxLine> framer_;
   std::uint32_t sequence_{0};
 };
 
@@ -154,68 +151,27 @@ class Hmr2300BinaryDecoder {
   std::uint32_t sequence_{0};
 };
 
-// hal::MagnetometerSource over a hal::SerialPort with one of the decoders above. Bytes are pulled
-// in chunks of kChunk; the receive time (clock) minus `latency_us` becomes the sample time.
+// hal::MagnetometerSource over a hal::SerialPort with one of the decoders above (SerialPump:
+// chunked reads, the receive time minus `latency_us` becomes the sample time).
 template <typename Decoder>
 class SerialFluxgate final : public hal::MagnetometerSource {
  public:
-  static constexpr std::size_t kChunk = 64;
-  static constexpr int kMaxChunks = 16;
   SerialFluxgate(hal::SerialPort& port, const hal::Clock& clock, Decoder decoder,
                  std::uint32_t latency_us = 0) noexcept
-      : port_(port), clock_(clock), decoder_(decoder), latency_us_(latency_us) {}
+      : pump_(port, clock, decoder, latency_us) {}
 
   hal::Status read(hal::MagnetometerSample& out, std::uint32_t timeout_us) noexcept override {
-    // Bounded work per call: at most kMaxChunks reads (the first may wait, the rest poll).
-    for (int attempt = 0; attempt < kMaxChunks; ++attempt) {
-      // A sample, or a line the decoder rejected (kCrcError, kMalformed, kOverflow): reported to
-      // the caller as the ADC source reports a bad frame; the bytes after it stay for the next
-      // call.
-      const hal::Status t = take_from_buffer(out);
-      if (t != hal::Status::kNoData) return t;
-      std::size_t n = 0;
-      const hal::Status s = port_.read(buf_, n, attempt == 0 ? timeout_us : 0);
-      if (s != hal::Status::kOk && s != hal::Status::kTimeout && s != hal::Status::kNoData) {
-        ++bus_errors_;
-        return s;
-      }
-      if (n == 0) return attempt == 0 ? hal::Status::kTimeout : hal::Status::kNoData;
-      const std::uint64_t now = clock_.now_us();
-      rx_t_us_ = now > latency_us_ ? now - latency_us_ : 0;
-      pos_ = 0;
-      len_ = n;
-    }
-    return take_from_buffer(out);
+    return pump_.read(out, timeout_us);
   }
   const hal::MagCounters& counters() const noexcept override {
-    counters_ = decoder_.counters();
-    counters_.bus_errors += bus_errors_;
+    counters_ = pump_.decoder().counters();
+    counters_.bus_errors += pump_.bus_errors();
     return counters_;
   }
-  const Decoder& decoder() const noexcept { return decoder_; }
+  const Decoder& decoder() const noexcept { return pump_.decoder(); }
 
  private:
-  // kOk (a sample), kNoData (the buffer is used up) or the decoder's rejection of a line.
-  hal::Status take_from_buffer(hal::MagnetometerSample& out) noexcept {
-    if constexpr (requires(Decoder d, hal::MagnetometerSample s) { d.pending(s); }) {
-      if (decoder_.pending(out)) return hal::Status::kOk;
-    }
-    while (pos_ < len_) {
-      const hal::Status s = decoder_.push(buf_[pos_++], rx_t_us_, out);
-      if (s != hal::Status::kNoData) return s;
-    }
-    return hal::Status::kNoData;
-  }
-
-  hal::SerialPort& port_;
-  const hal::Clock& clock_;
-  Decoder decoder_;
-  std::uint32_t latency_us_;
-  std::array<std::uint8_t, kChunk> buf_{};
-  std::size_t pos_{0};
-  std::size_t len_{0};
-  std::uint64_t rx_t_us_{0};
-  std::uint32_t bus_errors_{0};
+  SerialPump<Decoder, hal::MagnetometerSample> pump_;
   mutable hal::MagCounters counters_{};
 };
 

@@ -85,4 +85,21 @@ class Gaussian {
   bool has_spare_ = false;
 };
 
+// The seed of a simulated device's fault stream: the device's seed mixed with the stream's
+// identifier, so that enabling one fault never moves the draws of another.
+constexpr std::uint64_t device_stream_seed(std::uint64_t seed, std::uint64_t stream) noexcept {
+  SplitMix64 sm(seed ^ (stream * 0x9E3779B97F4A7C15ULL));
+  return sm.next();
+}
+
+// True with probability p (one draw, also when it comes out false; never a draw for p <= 0).
+inline bool draw(Xoshiro256& rng, double p) noexcept {
+  return p > 0 && rng.uniform() < p;
+}
+
+// Uniform integer in [0, n) (0 for n = 0).
+constexpr std::uint64_t below(Xoshiro256& rng, std::uint64_t n) noexcept {
+  return n == 0 ? 0 : rng.next() % n;
+}
+
 }  // namespace magvec::drivers::sim

@@ -15,6 +15,7 @@
 
 #include "magvec/drivers/g882.hpp"
 #include "magvec/drivers/sim/random.hpp"
+#include "magvec/drivers/sim/serial_wire.hpp"
 #include "magvec/drivers/sim/simulator.hpp"
 #include "magvec/hal/serial_port.hpp"
 
@@ -59,7 +60,7 @@ class SimG882 final : public hal::SerialPort {
   hal::Status write(std::span<const std::uint8_t> data, std::size_t& n_written) noexcept override;
 
   const SimG882Injected& injected() const noexcept { return injected_; }
-  std::size_t buffered() const noexcept { return count_; }
+  std::size_t buffered() const noexcept { return wire_.size(); }
 
  private:
   void put(std::uint8_t b) noexcept;
@@ -71,9 +72,7 @@ class SimG882 final : public hal::SerialPort {
   Xoshiro256 truncate_rng_;
   SimG882Injected injected_{};
   double next_cycle_s_{-1};
-  std::array<std::uint8_t, kBuffer> ring_{};
-  std::size_t head_{0};
-  std::size_t count_{0};
+  SerialWire<kBuffer> wire_;
 };
 
 }  // namespace magvec::drivers::sim

@@ -51,10 +51,11 @@ ScenarioConfig scenario_by_name(const std::string& name, drivers::sim::Fixture f
 
 const std::vector<std::string>& sim_csv_columns() {
   static const std::vector<std::string> columns = {
-      "t_s",           "hx_nT",         "hy_nT",      "hz_nT",          "F_nT",
-      "alpha_deg",     "beta_deg",      "gamma_deg",  "theta_deg",      "t_ins_s",
-      "flags",         "temperature_C", "hx_true_nT", "hy_true_nT",     "hz_true_nT",
-      "hE_true_nT",    "hN_true_nT",    "hU_true_nT", "alpha_true_deg", "beta_true_deg",
+      "t_s",           "hx_nT",      "hy_nT",          "hz_nT",
+      "F_nT",          "alpha_deg",  "beta_deg",       "gamma_deg",
+      "theta_deg",     "t_ins_s",    "flags",          "temperature_degC",
+      "hx_true_nT",    "hy_true_nT", "hz_true_nT",     "hE_true_nT",
+      "hN_true_nT",    "hU_true_nT", "alpha_true_deg", "beta_true_deg",
       "gamma_true_deg"};
   return columns;
 }
@@ -79,9 +80,11 @@ std::vector<std::string> sim_csv_comments(const ScenarioConfig& c, std::uint64_t
                 ", |h_n| = " + format_double(c.h_n_nT.norm()) + "; diurnal " + vec(c.diurnal_nT) +
                 " nT period " + format_double(c.diurnal_period_s) + " s; step " + vec(c.step_nT) +
                 " nT at t = " + format_double(c.step_time_s) + " s");
-  out.push_back("truth offset drift nT/C: " + vec(c.offset_drift_nT_per_c) + ", T(t) = " +
-                format_double(c.temp_start_c) + " + " + format_double(c.temp_rate_c_per_s) +
-                " * t C, reference " + format_double(c.temp_ref_c) + " C");
+  out.push_back("truth offset temperature coefficients nT/degC: " + vec(c.offset_drift_nT_per_c) +
+                ", o(T) = o + coefficients * (T - " + format_double(c.temp_ref_c) +
+                " degC), T(t) = " + format_double(c.temp_start_c) + " + " +
+                format_double(c.temp_rate_c_per_s) + " * (t - " + format_double(c.start_time_s) +
+                " s) degC (column temperature_degC)");
   const core::SensorModel<double>& m = c.truth;
   out.push_back("truth canonical: W = A^-1 = " + mat(m.w) + ", o_nT = " + vec(m.o) +
                 ", Rm quaternion (w, x, y, z) = [" + format_double(m.rm.w()) + ", " +

@@ -3,7 +3,11 @@
 // Invariants: every frame is counted exactly once (samples + crc_errors + malformed); a frame is
 // accepted only when its CRC word matches, and then its channel words re-encode to the same bytes;
 // a sample's field is finite, within the configured full scale, and its raw codes are 24-bit;
-// the sequence increments by one per sample; saturation and stuck flags agree with the codes.
+// the sequence increments by one per sample; saturation and stuck flags agree with the codes;
+// the temperature (channel 3, enabled by the stuck-count byte's top bit when no axis uses channel
+// 3) is finite and within its plausible range or NaN, NaN exactly when the channel is disabled, not
+// fresh, at full scale or out of range, and counters().temperature_rejected counts the NaNs of an
+// enabled channel (none when disabled).
 #include <array>
 #include <cmath>
 #include <cstring>
@@ -23,8 +27,22 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   const std::uint16_t gains = in.u16();
   for (std::size_t c = 0; c < 4; ++c)
     cfg.gain_code[c] = static_cast<std::uint8_t>((gains >> (3 * c)) & 7u);
-  cfg.stuck_count = in.u8() % 8;  // small, so that the detector is reached
+  const std::uint8_t stuck_byte = in.u8();
+  cfg.stuck_count = stuck_byte % 8;  // small, so that the detector is reached
   cfg.nT_per_volt = {1e4, -2e4, 5e3};
+  // Bits of the configuration bytes the layout above leaves unused: the temperature channel on or
+  // off, the sign of its scale (a thermistor bridge falls with temperature) and a narrow range.
+  const bool axis_on_3 =
+      cfg.channel_of_axis[0] == 3 || cfg.channel_of_axis[1] == 3 || cfg.channel_of_axis[2] == 3;
+  cfg.temperature.enabled = (stuck_byte & 0x80u) != 0 && !axis_on_3;
+  cfg.temperature.degC_per_volt = (gains & 0x1000u) != 0 ? -50.0 : 100.0;
+  cfg.temperature.offset_degC = (gains & 0x2000u) != 0 ? 25.0 : 0.0;
+  if ((gains & 0x4000u) != 0) {
+    cfg.temperature.min_degC = 10.0;
+    cfg.temperature.max_degC = 40.0;
+  }
+  FUZZ_CHECK(check_config(cfg) == Ads131ConfigError::kNone);
+  std::uint64_t temperature_nans = 0;
   Ads131FrameDecoder dec(cfg);
 
   std::uint64_t frames = 0, oks = 0, resets = 0;
@@ -85,6 +103,28 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
     FUZZ_CHECK(((s.flags & hal::kMagDeviceReset) != 0) ==
                ((r.response & ads131::kStatusReset) != 0));
     if ((s.flags & hal::kMagDeviceReset) != 0) ++resets;
+
+    const double temp = s.temperature_degC;
+    FUZZ_CHECK(std::isnan(temp) || std::isfinite(temp));
+    if (!cfg.temperature.enabled) {
+      FUZZ_CHECK(std::isnan(temp));
+    } else {
+      const std::int32_t code = r.codes[kAds131TemperatureChannel];
+      const bool usable = (r.response & 0x8u) != 0 && code != ads131::kCodePositiveFullScale &&
+                          code != ads131::kCodeNegativeFullScale;
+      const double expected =
+          cfg.temperature.offset_degC +
+          ads131::code_to_volts(code, cfg.gain_code[kAds131TemperatureChannel]) *
+              cfg.temperature.degC_per_volt;
+      const bool in_range =
+          expected >= cfg.temperature.min_degC && expected <= cfg.temperature.max_degC;
+      if (usable && in_range) {
+        FUZZ_CHECK(temp == expected);
+      } else {
+        FUZZ_CHECK(std::isnan(temp));
+        ++temperature_nans;
+      }
+    }
   }
   const hal::MagCounters& c = dec.counters();
   FUZZ_CHECK(c.samples == oks);
@@ -92,5 +132,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   FUZZ_CHECK(c.saturated <= c.samples && c.stuck <= c.samples);
   FUZZ_CHECK(c.device_resets == resets);
   FUZZ_CHECK(c.overflows == 0 && c.garbage_bytes == 0 && c.timeouts == 0 && c.bus_errors == 0);
+  FUZZ_CHECK(c.temperature_rejected == temperature_nans);
+  FUZZ_CHECK(c.temperature_rejected <= c.samples);
   return 0;
 }

@@ -14,8 +14,10 @@
 #include <cstdint>
 #include <memory>
 #include <numbers>
+#include <span>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "magvec/drivers/ads131_fluxgate.hpp"
 #include "magvec/drivers/ads131m04.hpp"
@@ -102,6 +104,95 @@ TEST(SpidevVm, ResetAndGainHandshakeThroughFluxgateDriver) {
   ASSERT_EQ(fluxgate.init(), hal::Status::kOk);
   EXPECT_TRUE(fluxgate.initialised());
   EXPECT_EQ(vmtest::read_sysfs_number(param("gain1")), ads::gain1_register(config.gain_code));
+}
+
+ads::ParseResult command_frame(SpidevBus& spi, std::uint16_t command,
+                               std::span<const std::uint16_t> data, ads::Response& r) {
+  ads::Frame tx{};
+  ads::Frame rx{};
+  EXPECT_TRUE(ads::build_command_frame(command, data, false, tx));
+  EXPECT_EQ(spi.transfer(tx, rx), hal::Status::kOk) << spi.last_error().message;
+  return ads::parse_response_frame(rx, r);
+}
+
+// STATUS.RESET reads MODE.RESET: set by a reset, still set after the reset acknowledge (FF24h)
+// has been read and after other registers were written, cleared only by writing MODE with the
+// bit 0 (and set again by writing it 1).
+TEST(SpidevVm, StatusResetStaysUntilModeResetIsWrittenZero) {
+  auto spi = open_spi();
+  ASSERT_TRUE(spi);
+  ads::Response r;
+  ASSERT_EQ(command_frame(*spi, ads::kCmdReset, {}, r), ads::ParseResult::kOk);
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  EXPECT_EQ(r.response, ads::kResetResponse);
+  EXPECT_EQ(vmtest::read_sysfs_number(param("mode")), ads::kModeResetValue);
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  EXPECT_NE(r.response & ads::kStatusReset, 0) << "cleared by reading the acknowledge";
+  const std::array<std::uint16_t, 1> gain{ads::gain1_register({1, 1, 1, 1})};
+  ASSERT_EQ(command_frame(*spi, ads::wreg(ads::kRegGain1, 1), gain, r), ads::ParseResult::kOk);
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  EXPECT_EQ(r.response, ads::wreg_response(ads::kRegGain1, 1));
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  EXPECT_NE(r.response & ads::kStatusReset, 0) << "cleared by writing another register";
+  const std::array<std::uint16_t, 1> still_set{ads::kModeResetValue};
+  ASSERT_EQ(command_frame(*spi, ads::wreg(ads::kRegMode, 1), still_set, r), ads::ParseResult::kOk);
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  EXPECT_NE(r.response & ads::kStatusReset, 0) << "cleared by writing MODE.RESET = 1";
+  const std::array<std::uint16_t, 1> cleared{
+      static_cast<std::uint16_t>(ads::kModeResetValue & ~ads::kModeReset)};
+  ASSERT_EQ(command_frame(*spi, ads::wreg(ads::kRegMode, 1), cleared, r), ads::ParseResult::kOk);
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  ASSERT_EQ(null_frame(*spi, r), ads::ParseResult::kOk);
+  EXPECT_EQ(r.response & ads::kStatusReset, 0) << "MODE.RESET written 0";
+  EXPECT_EQ(vmtest::read_sysfs_number(param("mode")), cleared[0]);
+}
+
+// The driver under that rule: init() clears MODE.RESET, so its samples are not flagged; a reset
+// mid-stream (inject_reset: the registers back to their defaults) flags exactly the sample that
+// shows it, is counted, and the driver configures the device again (gain and MODE), after which
+// the samples are clean.
+TEST(SpidevVm, ADeviceResetMidStreamIsFlaggedOnceAndTheDriverConfiguresAgain) {
+  auto spi = open_spi();
+  ASSERT_TRUE(spi);
+  const std::string pull = vmtest::env("MAGVEC_TEST_GPIO_PULL");
+  ASSERT_TRUE(vmtest::write_sysfs(pull, "pull-up"));
+  drivers::OsError err;
+  drivers::GpiodConfig gc;
+  gc.chip = vmtest::env("MAGVEC_TEST_GPIOCHIP");
+  gc.edge = hal::Edge::kFalling;
+  auto drdy = drivers::GpiodDataReadyLine::open(gc, &err);
+  ASSERT_TRUE(drdy) << err.message;
+  drivers::Ads131FluxgateConfig config;
+  config.gain_code = {2, 2, 2, 0};
+  drivers::Ads131Fluxgate fluxgate(*spi, *drdy, config);
+  ASSERT_EQ(fluxgate.init(), hal::Status::kOk);
+  EXPECT_EQ(vmtest::read_sysfs_number(param("mode")) & ads::kModeReset, 0);
+  const long long resets_before = vmtest::read_sysfs_number(param("resets"));
+  auto read_one = [&](hal::MagnetometerSample& s) {
+    EXPECT_TRUE(vmtest::write_sysfs(pull, "pull-down"));
+    const hal::Status st = fluxgate.read(s, 1'000'000);
+    EXPECT_TRUE(vmtest::write_sysfs(pull, "pull-up"));
+    return st;
+  };
+  std::vector<std::uint32_t> flags;
+  for (int i = 0; i < 30; ++i) {
+    if (i == 10) {
+      ASSERT_TRUE(vmtest::write_sysfs(param("inject_reset"), "1"));
+    }
+    hal::MagnetometerSample s;
+    ASSERT_EQ(read_one(s), hal::Status::kOk) << i;
+    flags.push_back(s.flags);
+  }
+  for (int i = 0; i < 30; ++i)
+    EXPECT_EQ((flags[static_cast<std::size_t>(i)] & hal::kMagDeviceReset) != 0, i == 10) << i;
+  EXPECT_EQ(fluxgate.counters().device_resets, 1u);
+  // The injected reset and the driver's own RESET command when it configured the device again.
+  EXPECT_EQ(vmtest::read_sysfs_number(param("resets")) - resets_before, 2);
+  EXPECT_TRUE(fluxgate.initialised());
+  EXPECT_EQ(vmtest::read_sysfs_number(param("gain1")), ads::gain1_register(config.gain_code));
+  EXPECT_EQ(vmtest::read_sysfs_number(param("mode")) & ads::kModeReset, 0);
+  ASSERT_TRUE(vmtest::write_sysfs(pull, "pull-down"));
 }
 
 TEST(SpidevVm, InjectedCrcErrorsAreDetectedExactly) {

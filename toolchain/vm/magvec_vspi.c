@@ -10,7 +10,13 @@
  * Frames are 18 bytes: response word (16 bit + pad), 4 channel words (24 bit, two's complement),
  * CRC-16-CCITT (poly 0x1021, seed 0xFFFF) over the first 15 bytes. The response to a command
  * appears in the next frame: RESET -> FF24h, WREG -> 010a aaaa ammm mmmm, anything else (NULL)
- * -> STATUS (WLENGTH 24 bit, DRDY0..3 set, RESET bit until the reset acknowledge was read).
+ * -> STATUS (WLENGTH 24 bit, DRDY0..3 set, RESET as MODE.RESET).
+ * RESET, as the datasheet's register map has it: STATUS.RESET (bit 10) reads MODE.RESET (bit 10),
+ * which a reset sets (MODE reset value 0510h) and only a WREG of MODE with that bit 0 clears.
+ * Reading the reset acknowledge (FF24h) or writing another register leaves it set, so a driver
+ * that never clears MODE.RESET sees every data frame flagged as after a reset. A reset puts
+ * GAIN1 and MODE back to their defaults; inject_reset (writable) does that before the next frame,
+ * as a brown-out or a glitch on SYNC/RESET would mid-stream.
  * Every data frame (answer to NULL) is a new conversion n = 0, 1, 2, ...: a field rotating by
  * one degree per conversion,
  *   ch0 = fixp_cos32(n) >> 9, ch1 = fixp_sin32(n) >> 9, ch2 = 0x100000, ch3 = n mod 2^23,
@@ -41,6 +47,10 @@
 #define STATUS_RESET 0x0400
 #define STATUS_WLENGTH24 0x0100
 #define STATUS_DRDY 0x000F
+#define REG_MODE 0x02
+#define REG_GAIN1 0x04
+#define MODE_RESET 0x0400
+#define MODE_RESET_VALUE 0x0510
 
 static unsigned int crc_error_every;
 module_param(crc_error_every, uint, 0644);
@@ -68,6 +78,16 @@ MODULE_PARM_DESC(fed_max_queued, "most fed conversions queued at once");
 static unsigned int gain1;
 module_param(gain1, uint, 0444);
 MODULE_PARM_DESC(gain1, "GAIN1 register as last written by WREG");
+static unsigned int mode = MODE_RESET_VALUE;
+module_param(mode, uint, 0444);
+MODULE_PARM_DESC(mode, "MODE register (bit 10 RESET: set by a reset, cleared only by a WREG)");
+static unsigned int inject_reset;
+module_param(inject_reset, uint, 0644);
+MODULE_PARM_DESC(inject_reset,
+                 "write 1: the device resets (registers to defaults) before the next frame");
+static unsigned int resets;
+module_param(resets, uint, 0444);
+MODULE_PARM_DESC(resets, "device resets (RESET commands and injected ones)");
 
 static struct platform_device* vspi_pdev;
 static struct spi_controller* vspi_ctlr;
@@ -77,7 +97,6 @@ static struct spi_device* vspi_loop;
 /* Device state; only touched from transfer_one, which the SPI core serialises. */
 static u16 pending_response;
 static bool pending_is_status = true;
-static bool reset_flag = true;
 
 /* Feed state (written by user space, read by transfer_one): feed_lock. */
 static DEFINE_SPINLOCK(feed_lock);
@@ -115,6 +134,12 @@ static void put24(u8* p, s32 v) {
   p[2] = u & 0xFF;
 }
 
+static void device_reset(void) {
+  mode = MODE_RESET_VALUE;
+  gain1 = 0;
+  ++resets;
+}
+
 static void build_frame(u8* out) {
   bool data = pending_is_status;
   u16 response = pending_response;
@@ -148,14 +173,17 @@ static void build_frame(u8* out) {
     codes[2] = 0x100000;
     codes[3] = (s32)(n & 0x7FFFFF);
   }
-  if (data) response = STATUS_WLENGTH24 | drdy | (reset_flag ? STATUS_RESET : 0);
+  if (READ_ONCE(inject_reset)) {
+    WRITE_ONCE(inject_reset, 0);
+    device_reset();
+  }
+  if (data) response = STATUS_WLENGTH24 | drdy | ((mode & MODE_RESET) ? STATUS_RESET : 0);
   put16(out, response);
   put24(out + 3, codes[0]);
   put24(out + 6, codes[1]);
   put24(out + 9, codes[2]);
   put24(out + 12, codes[3]);
   put16(out + 15, crc16_ccitt(out, 15));
-  if (response == RESET_RESPONSE) reset_flag = false;
   if (data) {
     ++data_frames;
     if (crc_error_every && data_frames % crc_error_every == 0) {
@@ -170,11 +198,14 @@ static void decode_command(const u8* tx, unsigned int len) {
 
   pending_is_status = false;
   if (cmd == 0x0011) { /* RESET */
-    reset_flag = true;
-    gain1 = 0;
+    device_reset();
     pending_response = RESET_RESPONSE;
-  } else if ((cmd & 0xE000) == 0x6000) { /* WREG */
-    if (((cmd >> 7) & 0x3F) == 0x04 && len >= 6) gain1 = (tx[3] << 8) | tx[4];
+  } else if ((cmd & 0xE000) == 0x6000) { /* WREG (of one register: the only form the model keeps) */
+    const unsigned int address = (cmd >> 7) & 0x3F;
+    const u16 value = len >= 6 ? (u16)((tx[3] << 8) | tx[4]) : 0;
+
+    if (address == REG_GAIN1 && len >= 6) gain1 = value;
+    if (address == REG_MODE && len >= 6) mode = value;
     pending_response = 0x4000 | (cmd & 0x1FFF);
   } else { /* NULL and unmodelled commands: STATUS + data */
     pending_is_status = true;

@@ -1,9 +1,47 @@
 // ADS131M04 fluxgate front end; see ads131_fluxgate.hpp.
 #include "magvec/drivers/ads131_fluxgate.hpp"
 
+#include <limits>
+
 namespace magvec::drivers {
 
 using namespace ads131;
+
+Ads131ConfigError check_config(const Ads131FluxgateConfig& config) noexcept {
+  for (const std::uint8_t ch : config.channel_of_axis) {
+    if (ch >= kChannels) return Ads131ConfigError::kAxisChannelOutOfRange;
+  }
+  const Ads131TemperatureConfig& t = config.temperature;
+  if (!t.enabled) return Ads131ConfigError::kNone;
+  for (const std::uint8_t ch : config.channel_of_axis) {
+    if (ch == kAds131TemperatureChannel) return Ads131ConfigError::kAxisOnTemperatureChannel;
+  }
+  // Written as comparisons that are false for NaN: no <cmath> classification needed.
+  constexpr double kHuge = 1e300;
+  const bool scale_ok = t.degC_per_volt != 0.0 && t.degC_per_volt > -kHuge &&
+                        t.degC_per_volt < kHuge && t.offset_degC > -kHuge && t.offset_degC < kHuge;
+  if (!scale_ok) return Ads131ConfigError::kTemperatureScale;
+  if (!(t.min_degC > -kHuge && t.max_degC < kHuge && t.min_degC < t.max_degC)) {
+    return Ads131ConfigError::kTemperatureRange;
+  }
+  return Ads131ConfigError::kNone;
+}
+
+const char* to_string(Ads131ConfigError error) noexcept {
+  switch (error) {
+    case Ads131ConfigError::kNone:
+      return "ok";
+    case Ads131ConfigError::kAxisChannelOutOfRange:
+      return "an axis channel is not 0..3";
+    case Ads131ConfigError::kAxisOnTemperatureChannel:
+      return "an axis uses channel 3, the temperature channel";
+    case Ads131ConfigError::kTemperatureScale:
+      return "temperature scale (degC per volt) must be finite and non-zero, offset finite";
+    case Ads131ConfigError::kTemperatureRange:
+      return "temperature range must be finite with min < max";
+  }
+  return "unknown";
+}
 
 void Ads131FrameDecoder::reset_stuck_detector() noexcept {
   last_code_.fill(0);
@@ -43,6 +81,7 @@ hal::Status Ads131FrameDecoder::decode(std::span<const std::uint8_t, kFrameBytes
     out.raw[axis] = code;
     out.m_nT[axis] = code_to_volts(code, config_.gain_code[ch]) * config_.nT_per_volt[axis];
   }
+  out.temperature_degC = temperature_of(r);
   out.t_us = t_us;
   out.flags = flags;
   out.sequence = sequence_++;
@@ -51,6 +90,25 @@ hal::Status Ads131FrameDecoder::decode(std::span<const std::uint8_t, kFrameBytes
   if ((flags & hal::kMagStuck) != 0) ++counters_.stuck;
   if ((flags & hal::kMagDeviceReset) != 0) ++counters_.device_resets;
   return hal::Status::kOk;
+}
+
+double Ads131FrameDecoder::temperature_of(const Response& r) noexcept {
+  constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+  const Ads131TemperatureConfig& t = config_.temperature;
+  if (!t.enabled) return kNaN;
+  const std::int32_t code = r.codes[kAds131TemperatureChannel];
+  const bool fresh = (r.response & (1u << kAds131TemperatureChannel)) != 0;
+  // Full scale: the sensor is open or shorted (or the amplifier railed): no temperature at all,
+  // whatever the conversion would say.
+  const bool full_scale = code == kCodePositiveFullScale || code == kCodeNegativeFullScale;
+  if (fresh && !full_scale) {
+    const double degC =
+        t.offset_degC +
+        code_to_volts(code, config_.gain_code[kAds131TemperatureChannel]) * t.degC_per_volt;
+    if (degC >= t.min_degC && degC <= t.max_degC) return degC;
+  }
+  ++counters_.temperature_rejected;
+  return kNaN;
 }
 
 hal::Status Ads131Fluxgate::exchange(std::uint16_t command, std::span<const std::uint16_t> data,
@@ -68,6 +126,9 @@ hal::Status Ads131Fluxgate::exchange(std::uint16_t command, std::span<const std:
 
 hal::Status Ads131Fluxgate::init() noexcept {
   initialised_ = false;
+  if (check_config(decoder_.config()) != Ads131ConfigError::kNone) {
+    return hal::Status::kInvalidArgument;
+  }
   Response r;
   bool crc_ok = false;
   // A command's response appears in the next frame, so each command is followed by a NULL.

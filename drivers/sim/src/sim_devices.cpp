@@ -14,21 +14,12 @@ constexpr std::uint64_t kStreamSerialGarbage = 0x5E41A16BULL;
 constexpr std::uint64_t kStreamSerialChecksum = 0x5E41AC5CULL;
 constexpr std::uint64_t kStreamInsCorrupt = 0x1A5C0BB7ULL;
 constexpr std::uint64_t kStreamInsDuplicate = 0x1A5D0B1EULL;
+constexpr std::uint64_t kStreamInsPosition = 0x9051710EULL;
+// Mean Earth radius: the simulated platform's metres to degrees (a sphere is plenty for a
+// reference-field input).
+constexpr double kEarthRadius_m = 6'371'000.0;
 // A gateway forwards an epoch again after its store-and-forward delay.
 constexpr std::uint64_t kEpochRepeatDelayUs = 1000;
-
-std::uint64_t mix(std::uint64_t seed, std::uint64_t stream) noexcept {
-  SplitMix64 sm(seed ^ (stream * 0x9E3779B97F4A7C15ULL));
-  return sm.next();
-}
-
-bool draw(Xoshiro256& rng, double p) noexcept {
-  return p > 0 && rng.uniform() < p;
-}
-
-std::uint64_t below(Xoshiro256& rng, std::uint64_t n) noexcept {
-  return n == 0 ? 0 : rng.next() % n;
-}
 
 bool in_window(double t, double start, double length) noexcept {
   return t >= start && t < start + length;
@@ -40,9 +31,9 @@ bool in_window(double t, double start, double length) noexcept {
 
 SimAds131Device::SimAds131Device(const SimAds131Config& config) noexcept
     : config_(config),
-      crc_rng_(mix(config.seed, kStreamAdcCrc)),
-      sat_rng_(mix(config.seed, kStreamAdcSat)),
-      reset_rng_(mix(config.seed, kStreamAdcReset)),
+      crc_rng_(device_stream_seed(config.seed, kStreamAdcCrc)),
+      sat_rng_(device_stream_seed(config.seed, kStreamAdcSat)),
+      reset_rng_(device_stream_seed(config.seed, kStreamAdcReset)),
       pending_response_(ads131::kStatusResetValue) {}
 
 void SimAds131Device::reset_registers() noexcept {
@@ -87,6 +78,26 @@ std::int32_t SimAds131Device::code_from_nT(double nT, double nT_per_volt, std::u
   return c;
 }
 
+// Channel 3 carries the sensor temperature through the transfer the driver inverts
+// (T = offset_degC + volts * degC_per_volt, ads131_fluxgate.hpp), or full scale while the sensor
+// is open. Unused when the temperature channel is disabled (the channel keeps its zero code).
+void SimAds131Device::convert_temperature(const SimSample& s) noexcept {
+  const Ads131TemperatureConfig& tc = config_.transfer.temperature;
+  if (!tc.enabled) return;
+  const SimAds131Faults& fa = config_.faults;
+  if (in_window(s.t_s, fa.temperature_open_start_s, fa.temperature_open_length_s)) {
+    codes_[kAds131TemperatureChannel] = ads131::kCodePositiveFullScale;
+    ++injected_.temperature_open;
+    return;
+  }
+  const auto gain_code = static_cast<std::uint8_t>(
+      (static_cast<unsigned>(gain1_) >> (4u * kAds131TemperatureChannel)) & 7u);
+  bool clip = false;
+  // code_from_nT's arithmetic is the generic volts -> code: value / (value per volt).
+  codes_[kAds131TemperatureChannel] =
+      code_from_nT(s.temperature_c - tc.offset_degC, tc.degC_per_volt, gain_code, &clip);
+}
+
 void SimAds131Device::convert(const SimSample& s, std::uint64_t t_us) noexcept {
   ++injected_.conversions;
   const SimAds131Faults& fa = config_.faults;
@@ -126,6 +137,7 @@ void SimAds131Device::convert(const SimSample& s, std::uint64_t t_us) noexcept {
       ++injected_.saturated;
     }
     if (stuck) codes_[stuck_ch] = held;
+    convert_temperature(s);
     drdy_bits_ = ads131::kStatusDrdyMask;
   }
   if (edge_count_ == kEdgeQueue) {  // the host did not keep up: the oldest edge is lost
@@ -218,16 +230,11 @@ hal::Status SimAds131Device::transfer(std::span<const std::uint8_t> tx,
 SimSerialFluxgate::SimSerialFluxgate(const SimSerialConfig& config) noexcept
     : config_(config),
       encoder_(config.line),
-      garbage_rng_(mix(config.seed, kStreamSerialGarbage)),
-      checksum_rng_(mix(config.seed, kStreamSerialChecksum)) {}
+      garbage_rng_(device_stream_seed(config.seed, kStreamSerialGarbage)),
+      checksum_rng_(device_stream_seed(config.seed, kStreamSerialChecksum)) {}
 
 void SimSerialFluxgate::put(std::uint8_t b) noexcept {
-  if (count_ == kBuffer) {
-    ++injected_.overflow_bytes;
-    return;
-  }
-  ring_[(head_ + count_) % kBuffer] = b;
-  ++count_;
+  if (!wire_.put(b)) ++injected_.overflow_bytes;
 }
 
 void SimSerialFluxgate::transmit(const SimSample& s) noexcept {
@@ -266,13 +273,7 @@ void SimSerialFluxgate::transmit(const SimSample& s) noexcept {
 
 hal::Status SimSerialFluxgate::read(std::span<std::uint8_t> buf, std::size_t& n_read,
                                     std::uint32_t /*timeout_us*/) noexcept {
-  n_read = 0;
-  while (n_read < buf.size() && count_ > 0) {
-    buf[n_read++] = ring_[head_];
-    head_ = (head_ + 1) % kBuffer;
-    --count_;
-  }
-  return n_read > 0 ? hal::Status::kOk : hal::Status::kTimeout;
+  return wire_.read(buf, n_read);
 }
 
 hal::Status SimSerialFluxgate::write(std::span<const std::uint8_t> data,
@@ -286,8 +287,36 @@ hal::Status SimSerialFluxgate::write(std::span<const std::uint8_t> data,
 SimSbgIns::SimSbgIns(Simulator& sim, const SimSbgConfig& config) noexcept
     : sim_(sim),
       config_(config),
-      corrupt_rng_(mix(config.seed, kStreamInsCorrupt)),
-      duplicate_rng_(mix(config.seed, kStreamInsDuplicate)) {}
+      corrupt_rng_(device_stream_seed(config.seed, kStreamInsCorrupt)),
+      duplicate_rng_(device_stream_seed(config.seed, kStreamInsDuplicate)),
+      position_rng_(device_stream_seed(config.seed, kStreamInsPosition)) {}
+
+double SimSbgIns::lat_deg() const noexcept {
+  return config_.site.lat_deg + north_m_ / kEarthRadius_m * 180.0 / core::kPi<double>;
+}
+
+double SimSbgIns::lon_deg() const noexcept {
+  const double c = std::cos(config_.site.lat_deg * core::kPi<double> / 180.0);
+  return config_.site.lon_deg + east_m_ / (kEarthRadius_m * c) * 180.0 / core::kPi<double>;
+}
+
+void SimSbgIns::emit_position(std::uint64_t t_rx_us) noexcept {
+  std::array<hal::CanFrame, 2> frames{
+      sbg::encode_ekf_pos(lat_deg(), lon_deg(), config_.ids),
+      sbg::encode_ekf_altitude(config_.site.altitude_m, config_.site.undulation_m, config_.ids)};
+  for (hal::CanFrame& f : frames) {
+    f.t_us = t_rx_us;
+    const bool hit = draw(position_rng_, config_.faults.corrupt_probability);
+    if (hit) {
+      f.dlc = static_cast<std::uint8_t>(position_rng_.next() % 6);  // below both messages' length
+      for (std::size_t i = f.dlc; i < f.data.size(); ++i)
+        f.data[i] = 0;
+      ++injected_.corrupted_position_frames;
+    }
+    push(f);
+  }
+  ++injected_.position_fixes;
+}
 
 bool SimSbgIns::corrupt(hal::CanFrame& f, std::uint8_t min_dlc) noexcept {
   const bool hit = draw(corrupt_rng_, config_.faults.corrupt_probability);
@@ -312,6 +341,14 @@ void SimSbgIns::push(const hal::CanFrame& f) noexcept {
 void SimSbgIns::emit_epoch(std::uint64_t k, const HostTimeMap& time) noexcept {
   const double t = static_cast<double>(k) / config_.rate_hz;
   const SimSbgFaults& fa = config_.faults;
+  // The platform moves whether or not the INS is heard.
+  if (config_.ground_speed_m_s != 0 && k > 0) {
+    // Along the true heading (aerospace yaw, clockwise from north) over one epoch period.
+    const double yaw = core::ypr_from_r_bn(sim_.true_attitude_at(t)).yaw;
+    const double d = config_.ground_speed_m_s / config_.rate_hz;
+    north_m_ += d * std::cos(yaw);
+    east_m_ += d * std::sin(yaw);
+  }
   if (in_window(t, fa.gap_start_s, fa.gap_length_s)) {
     ++injected_.gap_epochs;
     return;
@@ -373,6 +410,7 @@ void SimSbgIns::emit_epoch(std::uint64_t k, const HostTimeMap& time) noexcept {
     }
     if (time_lost && !attitude_lost) ++injected_.untimed_epochs;
   }
+  if (config_.position_every != 0 && k % config_.position_every == 0) emit_position(t_rx);
   ++injected_.epochs;
   if (time_lost || attitude_lost) ++injected_.corrupted_epochs;
   if (twice < n) ++injected_.duplicated_frames;

@@ -1,6 +1,7 @@
 // Streaming CSV reader for magvec recordings (docs/conventions.md#file-formats; rules in csv.hpp).
 #include <charconv>
 #include <cmath>
+#include <iterator>
 #include <limits>
 #include <string>
 
@@ -13,19 +14,30 @@ namespace {
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 constexpr std::size_t kReadBuffer = 1 << 20;
 
-enum class Kind : std::uint8_t { kTime, kField, kAngle, kUnitless };
+enum class Kind : std::uint8_t { kTime, kField, kAngle, kUnitless, kTemperature };
 
 struct Quantity {
   std::string_view name;
   Kind kind;
 };
 constexpr Quantity kQuantities[] = {
-    {"t", Kind::kTime},      {"hx", Kind::kField},    {"hy", Kind::kField},
-    {"hz", Kind::kField},    {"F", Kind::kField},     {"alpha", Kind::kAngle},
-    {"beta", Kind::kAngle},  {"gamma", Kind::kAngle}, {"yaw", Kind::kAngle},
-    {"pitch", Kind::kAngle}, {"roll", Kind::kAngle},  {"theta", Kind::kAngle},
-    {"qw", Kind::kUnitless}, {"qx", Kind::kUnitless}, {"qy", Kind::kUnitless},
+    {"t", Kind::kTime},
+    {"hx", Kind::kField},
+    {"hy", Kind::kField},
+    {"hz", Kind::kField},
+    {"F", Kind::kField},
+    {"alpha", Kind::kAngle},
+    {"beta", Kind::kAngle},
+    {"gamma", Kind::kAngle},
+    {"yaw", Kind::kAngle},
+    {"pitch", Kind::kAngle},
+    {"roll", Kind::kAngle},
+    {"theta", Kind::kAngle},
+    {"qw", Kind::kUnitless},
+    {"qx", Kind::kUnitless},
+    {"qy", Kind::kUnitless},
     {"qz", Kind::kUnitless},
+    {"temperature", Kind::kTemperature},
 };
 
 const Quantity* find_quantity(std::string_view q) {
@@ -46,6 +58,9 @@ double unit_scale(Kind kind, std::string_view unit) {
       return unit == "deg" ? 1.0 : (unit == "rad" ? 180.0 / core::kPi<double> : 0.0);
     case Kind::kUnitless:
       return 0.0;
+    case Kind::kTemperature:
+      // "C" too: simulation CSVs before the column was named temperature_degC wrote temperature_C.
+      return unit == "degC" || unit == "C" ? 1.0 : 0.0;
   }
   return 0.0;
 }
@@ -60,6 +75,8 @@ const char* accepted_units(Kind kind) {
       return "deg or rad";
     case Kind::kUnitless:
       return "none";
+    case Kind::kTemperature:
+      return "degC or C";
   }
   return "";
 }
@@ -186,7 +203,7 @@ void CsvReader::parse_header() {
   for (const std::string_view f : fields_)
     names_.emplace_back(f);
 
-  std::optional<Column> found[16];
+  std::optional<Column> found[std::size(kQuantities)];
   for (std::size_t c = 0; c < names_.size(); ++c) {
     const std::string& name = names_[c];
     if (name.empty()) fail(c, "empty column name");
@@ -232,6 +249,7 @@ void CsvReader::parse_header() {
   col_hz_ = require(3, "hz_nT");
   col_f_ = found[4];
   col_theta_ = found[11];
+  col_temperature_ = found[16];
 
   struct Set {
     AttitudeColumns kind;
@@ -328,6 +346,17 @@ bool CsvReader::next(CsvRecord* out) {
   if (col_theta_) {
     const double th = number(*col_theta_);
     if (!std::isnan(th)) r.theta_deg = th;
+  }
+  if (col_temperature_) {
+    const double temp = number(*col_temperature_);
+    // Below absolute zero is not a temperature; above 1000 degC no magnetometer survives: both are
+    // a broken column, not data.
+    if (!std::isnan(temp) && !(temp >= kTemperatureMin_degC && temp <= kTemperatureMax_degC)) {
+      fail(col_temperature_->index, "temperature " + format_double(temp) + " degC outside " +
+                                        format_double(kTemperatureMin_degC) + " .. " +
+                                        format_double(kTemperatureMax_degC) + " degC");
+    }
+    if (!std::isnan(temp)) r.temperature_degC = temp;
   }
   if (attitude_ != AttitudeColumns::kNone) {
     const std::size_t n = attitude_ == AttitudeColumns::kQuaternion ? 4 : 3;

@@ -9,8 +9,11 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <limits>
+#include <stdexcept>
 #include <system_error>
 
+#include "magvec/core/frames.hpp"
 #include "magvec/host/io/csv.hpp"
 
 namespace magvec::host::io {
@@ -154,6 +157,51 @@ void CsvWriter::write_row(std::span<const double> values) {
 
 void CsvWriter::commit() {
   file_.commit();
+}
+
+void write_recording_csv(const std::string& path, std::span<const CsvRecord> records,
+                         const std::vector<std::string>& comment_lines) {
+  bool any_f = false, any_attitude = false, any_theta = false, any_temperature = false;
+  for (const CsvRecord& r : records) {
+    any_f = any_f || r.f_nT.has_value();
+    any_attitude = any_attitude || r.r_bn.has_value();
+    any_theta = any_theta || r.theta_deg.has_value();
+    if (r.temperature_degC) {
+      any_temperature = true;
+      const double t = *r.temperature_degC;
+      if (!(t >= kTemperatureMin_degC && t <= kTemperatureMax_degC)) {
+        throw std::invalid_argument("CSV writer: temperature " + format_double(t) +
+                                    " degC of the record at t = " + format_double(r.t_s) +
+                                    " s is not a sensor temperature");
+      }
+    }
+  }
+  std::vector<std::string> columns = {"t_s", "hx_nT", "hy_nT", "hz_nT"};
+  if (any_f) columns.emplace_back("F_nT");
+  if (any_attitude) columns.insert(columns.end(), {"alpha_deg", "beta_deg", "gamma_deg"});
+  if (any_theta) columns.emplace_back("theta_deg");
+  if (any_temperature) columns.emplace_back("temperature_degC");
+  CsvWriter w(path, columns, comment_lines);
+  constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+  std::vector<double> row(columns.size());
+  for (const CsvRecord& r : records) {
+    std::size_t k = 0;
+    row[k++] = r.t_s;
+    for (int i = 0; i < 3; ++i)
+      row[k++] = r.dropout ? kNaN : r.m_nT(i);
+    if (any_f) row[k++] = r.f_nT.value_or(kNaN);
+    if (any_attitude) {
+      core::LiEuler<double> li{kNaN, kNaN, kNaN};
+      if (r.r_bn) li = core::li_from_r_bn(*r.r_bn);
+      row[k++] = core::rad_to_deg(li.alpha);
+      row[k++] = core::rad_to_deg(li.beta);
+      row[k++] = core::rad_to_deg(li.gamma);
+    }
+    if (any_theta) row[k++] = r.theta_deg.value_or(kNaN);
+    if (any_temperature) row[k++] = r.temperature_degC.value_or(kNaN);
+    w.write_row(row);
+  }
+  w.commit();
 }
 
 }  // namespace magvec::host::io

@@ -2,7 +2,9 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <deque>
+#include <limits>
 #include <vector>
 
 #include "magvec/drivers/ads131_fluxgate.hpp"
@@ -22,6 +24,29 @@ constexpr Frame kNormalFrame{0x01, 0x0F, 0x00, 0x12, 0x34, 0x56, 0xFF, 0xFF, 0xF
 // ch0 = +FS (7FFFFFh), ch1 = 16, ch2 = -FS, ch3 = 0; CRC DB55h.
 constexpr Frame kSaturatedFrame{0x01, 0x0F, 0x00, 0x7F, 0xFF, 0xFF, 0x00, 0x00, 0x10,
                                 0x80, 0x00, 0x00, 0x00, 0x00, 0x00, 0xDB, 0x55, 0x00};
+
+// Temperature channel frames: the axes as in kNormalFrame, ch3 the PT1000 amplifier of the
+// documented example (100 degC/V, 0 V at 0 degC, gain 1). CRCs worked out independently
+// (CRC-16-CCITT, seed FFFFh, over the 15 bytes before the CRC word).
+// ch3 191111h = 1642769 = 0.2350000 V = 23.5 degC (within one code, 1.4e-5 degC).
+constexpr Frame kTemperatureFrame{0x01, 0x0F, 0x00, 0x12, 0x34, 0x56, 0xFF, 0xFF, 0xFE,
+                                  0x00, 0x00, 0x01, 0x19, 0x11, 0x11, 0xED, 0xAD, 0x00};
+// ch3 7FFFFFh = +FS: the open sensor railed the amplifier.
+constexpr Frame kOpenSensorFrame{0x01, 0x0F, 0x00, 0x12, 0x34, 0x56, 0xFF, 0xFF, 0xFE,
+                                 0x00, 0x00, 0x01, 0x7F, 0xFF, 0xFF, 0xEB, 0x3B, 0x00};
+// As kTemperatureFrame but STATUS 0107h: DRDY3 clear, channel 3 has no new conversion.
+constexpr Frame kStaleTemperatureFrame{0x01, 0x07, 0x00, 0x12, 0x34, 0x56, 0xFF, 0xFF, 0xFE,
+                                       0x00, 0x00, 0x01, 0x19, 0x11, 0x11, 0x06, 0xC6, 0x00};
+// ch3 CAAAABh = -3495253 = -0.5 V = -50 degC: below the default plausible range (-40 degC).
+constexpr Frame kColdFrame{0x01, 0x0F, 0x00, 0x12, 0x34, 0x56, 0xFF, 0xFF, 0xFE,
+                           0x00, 0x00, 0x01, 0xCA, 0xAA, 0xAB, 0x15, 0x0F, 0x00};
+constexpr double kTemperature23_5 = 1642769.0 * 1.2 / 8388608.0 * 100.0;
+
+Ads131FluxgateConfig temperature_config() {
+  Ads131FluxgateConfig cfg;
+  cfg.temperature.enabled = true;  // the defaults are the PT1000 example
+  return cfg;
+}
 
 TEST(Ads131m04, CommandWords) {
   EXPECT_EQ(rreg(kRegStatus, 1), 0xA080);  // 101 000001 0000000
@@ -143,6 +168,129 @@ TEST(Ads131FrameDecoder, SaturationCrcStatusAndStuckDetection) {
   ASSERT_EQ(dec.decode(f, 0, s), hal::Status::kOk);
   EXPECT_FALSE(s.flags & hal::kMagStuck);
   EXPECT_EQ(dec.counters().stuck, 1u);
+}
+
+TEST(Ads131FrameDecoder, TemperatureChannelConvertsChannel3) {
+  Ads131FrameDecoder dec(temperature_config());
+  hal::MagnetometerSample s;
+  ASSERT_EQ(dec.decode(kTemperatureFrame, 10, s), hal::Status::kOk);
+  EXPECT_NEAR(s.temperature_degC, 23.5, 2e-5);
+  EXPECT_DOUBLE_EQ(s.temperature_degC, kTemperature23_5);
+  EXPECT_EQ(s.flags, 0u);
+  EXPECT_NEAR(s.m_nT[0], 1706.6659927368164, 1e-9);  // the field is as without the channel
+  EXPECT_EQ(dec.counters().temperature_rejected, 0u);
+
+  // Another scale, offset and PGA gain: a thermistor bridge of -50 degC/V around 25 degC at gain
+  // 4 (the code then means a quarter of the volts).
+  Ads131FluxgateConfig cfg = temperature_config();
+  cfg.temperature.degC_per_volt = -50.0;
+  cfg.temperature.offset_degC = 25.0;
+  cfg.gain_code[3] = 2;
+  Ads131FrameDecoder thermistor(cfg);
+  ASSERT_EQ(thermistor.decode(kTemperatureFrame, 10, s), hal::Status::kOk);
+  EXPECT_DOUBLE_EQ(s.temperature_degC, 25.0 - 50.0 * 1642769.0 * 0.3 / 8388608.0);
+  EXPECT_EQ(thermistor.counters().temperature_rejected, 0u);
+}
+
+TEST(Ads131FrameDecoder, DisabledTemperatureChannelGivesNaNUncounted) {
+  Ads131FrameDecoder dec(Ads131FluxgateConfig{});
+  hal::MagnetometerSample s;
+  s.temperature_degC = 1.0;  // a reused sample must not keep an old temperature
+  ASSERT_EQ(dec.decode(kTemperatureFrame, 0, s), hal::Status::kOk);
+  EXPECT_TRUE(std::isnan(s.temperature_degC));
+  ASSERT_EQ(dec.decode(kOpenSensorFrame, 0, s), hal::Status::kOk);
+  EXPECT_TRUE(std::isnan(s.temperature_degC));
+  EXPECT_EQ(s.flags, 0u);  // channel 3 is not an axis: its full scale is not a saturation
+  EXPECT_EQ(dec.counters().temperature_rejected, 0u);
+  EXPECT_EQ(dec.counters().samples, 2u);
+}
+
+TEST(Ads131FrameDecoder, OpenStaleOrImplausibleTemperatureIsRejectedAndCountedFieldStaysValid) {
+  Ads131FrameDecoder dec(temperature_config());
+  hal::MagnetometerSample s;
+  const Frame* rejected[] = {&kOpenSensorFrame, &kStaleTemperatureFrame, &kColdFrame};
+  std::uint32_t n = 0;
+  for (const Frame* f : rejected) {
+    s.temperature_degC = 20.0;
+    ASSERT_EQ(dec.decode(*f, 0, s), hal::Status::kOk);
+    ++n;
+    EXPECT_TRUE(std::isnan(s.temperature_degC)) << n;
+    EXPECT_EQ(s.flags, 0u) << n;  // the field sample itself stays valid
+    EXPECT_NEAR(s.m_nT[0], 1706.6659927368164, 1e-9);
+    EXPECT_EQ(dec.counters().temperature_rejected, n);
+  }
+  EXPECT_EQ(dec.counters().saturated, 0u);
+  // A good conversion again after the faults.
+  ASSERT_EQ(dec.decode(kTemperatureFrame, 0, s), hal::Status::kOk);
+  EXPECT_DOUBLE_EQ(s.temperature_degC, kTemperature23_5);
+  EXPECT_EQ(dec.counters().temperature_rejected, 3u);
+  EXPECT_EQ(dec.counters().samples, 4u);
+  // -50 degC is fine for a sensor specified down to -55 degC.
+  Ads131FluxgateConfig wide = temperature_config();
+  wide.temperature.min_degC = -55.0;
+  Ads131FrameDecoder cold(wide);
+  ASSERT_EQ(cold.decode(kColdFrame, 0, s), hal::Status::kOk);
+  EXPECT_NEAR(s.temperature_degC, -50.0, 2e-5);
+  EXPECT_EQ(cold.counters().temperature_rejected, 0u);
+}
+
+TEST(Ads131FrameDecoder, CorruptTemperatureFramesAreCrcErrorsWithoutATemperatureCount) {
+  Ads131FrameDecoder dec(temperature_config());
+  hal::MagnetometerSample s;
+  // Every single-bit error in the channel-3 word or the CRC word is caught by the CRC: a
+  // corrupted temperature never reaches a sample.
+  std::uint32_t errors = 0;
+  for (std::size_t byte = 12; byte < 17; ++byte) {
+    for (int bit = 0; bit < 8; ++bit) {
+      Frame f = kTemperatureFrame;
+      f[byte] ^= static_cast<std::uint8_t>(1u << bit);
+      EXPECT_EQ(dec.decode(f, 0, s), hal::Status::kCrcError) << byte << ":" << bit;
+      ++errors;
+    }
+  }
+  // A frame with a plausible-looking temperature whose CRC word was not updated.
+  Frame forged = kTemperatureFrame;
+  forged[13] = 0x22;
+  EXPECT_EQ(dec.decode(forged, 0, s), hal::Status::kCrcError);
+  ++errors;
+  EXPECT_EQ(dec.counters().crc_errors, errors);
+  EXPECT_EQ(dec.counters().temperature_rejected, 0u);
+  EXPECT_EQ(dec.counters().samples, 0u);
+  // A malformed frame (16-bit word length) with a temperature: no sample, no temperature count.
+  Frame f16{};
+  encode_response_frame(0x000F, {1, 2, 3, 1642769}, f16);
+  EXPECT_EQ(dec.decode(f16, 0, s), hal::Status::kMalformed);
+  EXPECT_EQ(dec.counters().temperature_rejected, 0u);
+}
+
+TEST(Ads131FluxgateConfig, CheckConfigNamesTheProblem) {
+  EXPECT_EQ(check_config(Ads131FluxgateConfig{}), Ads131ConfigError::kNone);
+  EXPECT_EQ(check_config(temperature_config()), Ads131ConfigError::kNone);
+  Ads131FluxgateConfig c = temperature_config();
+  c.channel_of_axis = {0, 1, 3};
+  EXPECT_EQ(check_config(c), Ads131ConfigError::kAxisOnTemperatureChannel);
+  c.temperature.enabled = false;  // channel 3 as an axis is fine without the temperature
+  EXPECT_EQ(check_config(c), Ads131ConfigError::kNone);
+  c.channel_of_axis = {0, 4, 2};
+  EXPECT_EQ(check_config(c), Ads131ConfigError::kAxisChannelOutOfRange);
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  const double inf = std::numeric_limits<double>::infinity();
+  for (const double bad : {0.0, nan, inf, -inf}) {
+    c = temperature_config();
+    c.temperature.degC_per_volt = bad;
+    EXPECT_EQ(check_config(c), Ads131ConfigError::kTemperatureScale) << bad;
+  }
+  c = temperature_config();
+  c.temperature.offset_degC = nan;
+  EXPECT_EQ(check_config(c), Ads131ConfigError::kTemperatureScale);
+  c = temperature_config();
+  c.temperature.min_degC = 85.0;
+  EXPECT_EQ(check_config(c), Ads131ConfigError::kTemperatureRange);
+  c = temperature_config();
+  c.temperature.max_degC = nan;
+  EXPECT_EQ(check_config(c), Ads131ConfigError::kTemperatureRange);
+  EXPECT_STREQ(to_string(Ads131ConfigError::kAxisOnTemperatureChannel),
+               "an axis uses channel 3, the temperature channel");
 }
 
 // A minimal register-level model of the ADC on the other side of the SPI bus.
@@ -303,6 +451,31 @@ TEST(Ads131Fluxgate, DeviceResetMidStreamIsFlaggedCountedAndReinitialised) {
   EXPECT_DOUBLE_EQ(s.m_nT[0], 1000 * nT_per_code);
   EXPECT_EQ(drv.counters().device_resets, 2u);
   EXPECT_EQ(drv.counters().samples, 5u);
+}
+
+TEST(Ads131Fluxgate, ReadsTheTemperatureChannelAndRefusesABadConfiguration) {
+  FakeAdc adc;
+  Ads131Fluxgate drv(adc, adc, temperature_config());
+  ASSERT_EQ(drv.init(), hal::Status::kOk);
+  adc.codes[3] = 1642769;  // 23.5 degC
+  adc.edges.push_back({1000, hal::Edge::kFalling});
+  hal::MagnetometerSample s;
+  ASSERT_EQ(drv.read(s, 0), hal::Status::kOk);
+  EXPECT_DOUBLE_EQ(s.temperature_degC, kTemperature23_5);
+  adc.codes[3] = kCodePositiveFullScale;  // the sensor opens
+  adc.edges.push_back({2000, hal::Edge::kFalling});
+  ASSERT_EQ(drv.read(s, 0), hal::Status::kOk);
+  EXPECT_TRUE(std::isnan(s.temperature_degC));
+  EXPECT_EQ(s.flags, 0u);
+  EXPECT_EQ(drv.counters().temperature_rejected, 1u);
+
+  Ads131FluxgateConfig bad = temperature_config();
+  bad.channel_of_axis = {3, 1, 2};
+  FakeAdc adc2;
+  Ads131Fluxgate refused(adc2, adc2, bad);
+  EXPECT_EQ(refused.init(), hal::Status::kInvalidArgument);
+  EXPECT_TRUE(adc2.commands.empty());  // nothing sent to the device
+  EXPECT_FALSE(refused.initialised());
 }
 
 TEST(Ads131Fluxgate, InitFailsOnWrongResetAcknowledge) {

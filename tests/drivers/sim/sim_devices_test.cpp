@@ -185,6 +185,65 @@ TEST(SimAds131Device, ResetsMidStreamAndAStuckChannelAreFlaggedAndCounted) {
   EXPECT_TRUE(fg.initialised());
 }
 
+// Channel 3 as the fluxgate's temperature: the real driver reads back the simulator's
+// temperature ramp within half a code of the temperature transfer; while the sensor is open
+// (full scale) the samples come without a temperature, counted, with their field values intact.
+TEST(SimAds131Device, TemperatureChannelReadsBackTheRampAndAnOpenSensorIsCounted) {
+  ScenarioConfig sc = short_survey(4000);  // 20 s at 200 Hz
+  sc.temp_start_c = 5.0;
+  sc.temp_rate_c_per_s = 1.0;  // 5 .. 25 degC
+  Simulator sim(sc, 17);
+  SimRigConfig rc = spi_rig();
+  rc.adc.transfer.temperature.enabled = true;  // 100 degC/V, 0 degC at 0 V (the defaults)
+  rc.adc.faults.temperature_open_start_s = 12;
+  rc.adc.faults.temperature_open_length_s = 1;  // 200 conversions
+  SimRig rig(sim, rc);
+  drivers::Ads131Fluxgate fg(rig.adc(), rig.adc(), rc.adc.transfer);
+  ASSERT_EQ(fg.init(), hal::Status::kOk);
+  // One code of the temperature channel at gain 1: 1.2 V / 2^23 * 100 degC/V.
+  constexpr double kLsbDegC = 1.2 / 8388608.0 * 100.0;
+  double worst = 0;
+  std::uint32_t with_t = 0, without_t = 0;
+  while (rig.step()) {
+    hal::MagnetometerSample s;
+    ASSERT_EQ(fg.read(s, 0), hal::Status::kOk);
+    EXPECT_EQ(s.flags, 0u);  // an open temperature sensor does not invalidate the field
+    for (int i = 0; i < 3; ++i)
+      EXPECT_NEAR(s.m_nT[static_cast<std::size_t>(i)], rig.last().m_nT[i], 0.5 * kLsbNt + 1e-9);
+    const double t = rig.last().t_s;
+    if (t >= 12 && t < 13) {
+      EXPECT_TRUE(std::isnan(s.temperature_degC)) << t;
+      ++without_t;
+      continue;
+    }
+    ASSERT_TRUE(std::isfinite(s.temperature_degC)) << t;
+    worst = std::fmax(worst, std::fabs(s.temperature_degC - rig.last().temperature_c));
+    ++with_t;
+  }
+  EXPECT_EQ(with_t, 3800u);
+  EXPECT_EQ(without_t, 200u);
+  EXPECT_LE(worst, 0.5 * kLsbDegC + 1e-9);
+  EXPECT_EQ(rig.adc().injected().temperature_open, 200u);
+  EXPECT_EQ(fg.counters().temperature_rejected, 200u);
+  EXPECT_EQ(fg.counters().samples, 4000u);
+}
+
+// Disabled (the default), channel 3 is not read as a temperature: NaN, nothing counted.
+TEST(SimAds131Device, TemperatureChannelOffGivesNoTemperature) {
+  Simulator sim(short_survey(200), 5);
+  SimRigConfig rc = spi_rig();
+  SimRig rig(sim, rc);
+  drivers::Ads131Fluxgate fg(rig.adc(), rig.adc(), rc.adc.transfer);
+  ASSERT_EQ(fg.init(), hal::Status::kOk);
+  while (rig.step()) {
+    hal::MagnetometerSample s;
+    ASSERT_EQ(fg.read(s, 0), hal::Status::kOk);
+    EXPECT_TRUE(std::isnan(s.temperature_degC));
+  }
+  EXPECT_EQ(fg.counters().temperature_rejected, 0u);
+  EXPECT_EQ(rig.adc().injected().temperature_open, 0u);
+}
+
 TEST(SimAds131Device, ClockJumpShiftsDrdyTimestamps) {
   Simulator sim(short_survey(400), 3);
   SimRigConfig rc = spi_rig();

@@ -430,6 +430,121 @@ TEST_F(Csv, WriterRejectsBadRows) {
   EXPECT_THROW(CsvWriter((dir_ / "no_such_dir" / "x.csv").string(), {"a"}), std::system_error);
 }
 
+TEST_F(Csv, TemperatureColumnIsReadWhenPresent) {
+  const std::string p = write("t.csv",
+                              "t_s,hx_nT,hy_nT,hz_nT,temperature_degC\n"
+                              "0,1,2,3,21.5\n"
+                              "1,1,2,3,nan\n"
+                              "2,nan,nan,nan,-40\n");
+  CsvReader r(p);
+  EXPECT_TRUE(r.has_temperature());
+  CsvRecord rec;
+  ASSERT_TRUE(r.next(&rec));
+  EXPECT_EQ(rec.temperature_degC.value(), 21.5);
+  ASSERT_TRUE(r.next(&rec));
+  EXPECT_FALSE(rec.temperature_degC.has_value());  // nan: no temperature for this row
+  ASSERT_TRUE(r.next(&rec));
+  EXPECT_TRUE(rec.dropout);
+  EXPECT_EQ(rec.temperature_degC.value(), -40.0);  // the temperature channel outlives a dropout
+  EXPECT_FALSE(r.next(&rec));
+}
+
+TEST_F(Csv, RecordingWithoutTemperatureColumnStillReads) {
+  // A recording from before the column existed: no temperature in any record, nothing else moves.
+  const std::string p = write("old.csv",
+                              "t_s,hx_nT,hy_nT,hz_nT,F_nT\n"
+                              "0,1,2,3,50000\n");
+  CsvReader r(p);
+  EXPECT_FALSE(r.has_temperature());
+  CsvRecord rec;
+  ASSERT_TRUE(r.next(&rec));
+  EXPECT_EQ(rec.m_nT, Vec3<double>(1, 2, 3));
+  EXPECT_EQ(rec.f_nT.value(), 50000.0);
+  EXPECT_FALSE(rec.temperature_degC.has_value());
+}
+
+TEST_F(Csv, OlderSimulationTemperatureColumnInCIsRead) {
+  const std::string p = write("sim.csv", "t_s,hx_nT,hy_nT,hz_nT,temperature_C\n0,1,2,3,20\n");
+  CsvReader r(p);
+  CsvRecord rec;
+  ASSERT_TRUE(r.next(&rec));
+  EXPECT_EQ(rec.temperature_degC.value(), 20.0);
+}
+
+TEST_F(Csv, BadTemperatureColumnsAndValuesAreErrors) {
+  std::string column;
+  std::uint64_t line = 0;
+  EXPECT_NE(error_of("t_s,hx_nT,hy_nT,hz_nT,temperature_K\n0,1,2,3,300\n", &line, &column)
+                .find("unknown unit 'K' for temperature (accepted: degC or C)"),
+            std::string::npos);
+  EXPECT_EQ(column, "'temperature_K' (field 5)");
+  EXPECT_NE(error_of("t_s,hx_nT,hy_nT,hz_nT,temperature\n0,1,2,3,20\n")
+                .find("column needs a unit suffix"),
+            std::string::npos);
+  EXPECT_NE(error_of("t_s,hx_nT,hy_nT,hz_nT,temperature_degC,temperature_C\n0,1,2,3,20,20\n")
+                .find("quantity temperature appears twice"),
+            std::string::npos);
+  EXPECT_NE(error_of("t_s,hx_nT,hy_nT,hz_nT,temperature_degC\n0,1,2,3,warm\n")
+                .find("malformed number 'warm'"),
+            std::string::npos);
+  EXPECT_NE(error_of("t_s,hx_nT,hy_nT,hz_nT,temperature_degC\n0,1,2,3,inf\n").find("non-finite"),
+            std::string::npos);
+  EXPECT_NE(error_of("t_s,hx_nT,hy_nT,hz_nT,temperature_degC\n0,1,2,3,\n").find("empty field"),
+            std::string::npos);
+  EXPECT_NE(
+      error_of("t_s,hx_nT,hy_nT,hz_nT,temperature_degC\n0,1,2,3,20\n1,1,2,3,-300\n", &line, &column)
+          .find("temperature -300 degC outside -273.15 .. 1000 degC"),
+      std::string::npos);
+  EXPECT_EQ(line, 3U);
+  EXPECT_EQ(column, "'temperature_degC' (field 5)");
+  EXPECT_NE(error_of("t_s,hx_nT,hy_nT,hz_nT,temperature_degC\n0,1,2,3,1e4\n").find("outside"),
+            std::string::npos);
+}
+
+TEST_F(Csv, RecordingWriterAddsTheTemperatureColumnOnlyWhenASampleHasIt) {
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  std::vector<CsvRecord> recs(3);
+  for (std::size_t i = 0; i < recs.size(); ++i) {
+    recs[i].t_s = 0.01 * static_cast<double>(i);
+    recs[i].m_nT = Vec3<double>(1.0 / 3.0, -2.5, 4e4 + static_cast<double>(i));
+    recs[i].f_nT = 5e4;
+  }
+  recs[1].dropout = true;
+  recs[1].m_nT.setConstant(nan);
+  recs[2].r_bn = core::r_bn_from_li(core::LiEuler<double>{0.1, 0.2, -0.3});
+  const std::string without = (dir_ / "without.csv").string();
+  write_recording_csv(without, recs, {"no temperature"});
+  {
+    CsvReader r(without);
+    EXPECT_FALSE(r.has_temperature());
+    EXPECT_FALSE(r.column_index("temperature_degC").has_value());
+  }
+  recs[0].temperature_degC = 23.125;
+  recs[2].temperature_degC = -0.1;
+  const std::string with = (dir_ / "with.csv").string();
+  write_recording_csv(with, recs);
+  CsvReader r(with);
+  EXPECT_TRUE(r.has_temperature());
+  EXPECT_EQ(r.attitude_columns(), AttitudeColumns::kLi);
+  CsvRecord rec;
+  ASSERT_TRUE(r.next(&rec));
+  EXPECT_EQ(rec.m_nT, recs[0].m_nT);
+  EXPECT_EQ(rec.temperature_degC.value(), 23.125);
+  EXPECT_FALSE(rec.r_bn.has_value());
+  ASSERT_TRUE(r.next(&rec));
+  EXPECT_TRUE(rec.dropout);
+  EXPECT_FALSE(rec.temperature_degC.has_value());
+  ASSERT_TRUE(r.next(&rec));
+  EXPECT_EQ(rec.temperature_degC.value(), -0.1);
+  ASSERT_TRUE(rec.r_bn.has_value());
+  EXPECT_LT((*rec.r_bn - *recs[2].r_bn).cwiseAbs().maxCoeff(), 1e-12);
+  EXPECT_FALSE(r.next(&rec));
+
+  recs[0].temperature_degC = -300.0;
+  EXPECT_THROW(write_recording_csv((dir_ / "bad.csv").string(), recs), std::invalid_argument);
+  EXPECT_FALSE(fs::exists(dir_ / "bad.csv"));
+}
+
 TEST_F(Csv, WriterIsAtomic) {
   const std::string p = write("out.csv", "old content\n");
   {

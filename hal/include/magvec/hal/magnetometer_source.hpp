@@ -42,6 +42,10 @@ struct MagCounters {
   std::uint32_t device_resets{0};  // samples flagged kMagDeviceReset (the driver re-initialised)
   std::uint32_t timeouts{0};       // expected sample did not arrive in time
   std::uint32_t bus_errors{0};     // transport failures
+  // Samples delivered without their temperature although the driver has a temperature channel
+  // (open or shorted sensor, a value outside the plausible range, no new conversion): the field
+  // values of those samples stay valid, temperature_degC is NaN.
+  std::uint32_t temperature_rejected{0};
 };
 
 class MagnetometerSource {

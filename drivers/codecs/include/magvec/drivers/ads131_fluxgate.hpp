@@ -10,6 +10,18 @@
 // kMagDeviceReset (an invalid sample, counted in device_resets) and read() re-initialises the
 // device before returning it. A failed re-initialisation is retried by every following read(),
 // which returns kNotReady until it succeeds.
+//
+// Temperature channel: the fourth input (channel 3) of the M04 is an ordinary differential input
+// (SBAS788, "Input Multiplexer" and "Channel Configuration": every channel converts the same way)
+// and can carry the fluxgate's temperature: T[degC] = offset_degC + volts * degC_per_volt. The
+// example used for the defaults, magvecd's example configuration and the MCU image is a PT1000 in
+// a bridge with an instrumentation amplifier giving 10 mV/degC and 0 V at 0 degC: 100 degC/V,
+// offset 0; at gain 1 the ADC's +-1.2 V span +-120 degC. An open PT1000 (or a broken wire) drives
+// the amplifier into its rail and the ADC to full scale; a conversion at full scale, outside the
+// plausible range [min_degC, max_degC], or without its DRDY3 bit (not a new conversion) gives no
+// temperature: temperature_degC is NaN and counters().temperature_rejected counts it. The field
+// values of that sample are unaffected (a broken temperature sensor does not invalidate the
+// fluxgate). Disabled (the default): every sample's temperature_degC is NaN and nothing is counted.
 #pragma once
 
 #include <array>
@@ -22,12 +34,35 @@
 
 namespace magvec::drivers {
 
+inline constexpr std::uint8_t kAds131TemperatureChannel = 3;
+
+struct Ads131TemperatureConfig {
+  bool enabled{false};
+  double degC_per_volt{100.0};  // PT1000 bridge + amplifier, 10 mV/degC (see above)
+  double offset_degC{0.0};      // temperature at 0 V
+  double min_degC{-40.0};       // plausible range of the sensor where it is used; outside: rejected
+  double max_degC{85.0};
+};
+
 struct Ads131FluxgateConfig {
   std::array<std::uint8_t, 3> channel_of_axis{0, 1, 2};  // ADC channel (0..3) of sensor x, y, z
   std::array<double, 3> nT_per_volt{1e4, 1e4, 1e4};      // fluxgate transfer coefficient per axis
   std::array<std::uint8_t, 4> gain_code{0, 0, 0, 0};     // PGAGAINn codes (gain = 2^code)
   std::uint32_t stuck_count{64};  // identical consecutive codes that flag a stuck channel; 0 = off
+  Ads131TemperatureConfig temperature{};  // channel 3 (kAds131TemperatureChannel)
 };
+
+enum class Ads131ConfigError : std::uint8_t {
+  kNone,
+  kAxisChannelOutOfRange,     // channel_of_axis > 3
+  kAxisOnTemperatureChannel,  // an axis on channel 3 while it is the temperature channel
+  kTemperatureScale,          // degC_per_volt zero or not finite, offset_degC not finite
+  kTemperatureRange,          // min_degC/max_degC not finite or min_degC >= max_degC
+};
+// The first problem of a configuration (kNone: usable). Ads131Fluxgate::init() refuses a
+// configuration with a problem (kInvalidArgument); hosts check it when they read their settings.
+Ads131ConfigError check_config(const Ads131FluxgateConfig& config) noexcept;
+const char* to_string(Ads131ConfigError error) noexcept;
 
 // Stateless-per-frame conversion plus the per-channel stuck detector, separated from the transport
 // so that it is testable byte by byte.
@@ -36,7 +71,8 @@ class Ads131FrameDecoder {
   explicit Ads131FrameDecoder(const Ads131FluxgateConfig& config) noexcept : config_(config) {}
 
   // Decodes one output frame taken after a NULL command. Returns kOk (sample filled, flags may be
-  // set), kCrcError or kMalformed (WLENGTH is not 24 bit). Counters updated either way.
+  // set, temperature_degC NaN when there is none), kCrcError or kMalformed (WLENGTH is not 24
+  // bit). Counters updated either way.
   hal::Status decode(std::span<const std::uint8_t, ads131::kFrameBytes> frame, std::uint64_t t_us,
                      hal::MagnetometerSample& out) noexcept;
 
@@ -46,6 +82,9 @@ class Ads131FrameDecoder {
   void reset_stuck_detector() noexcept;
 
  private:
+  // Channel 3 as a temperature (NaN and counted when there is none; NaN uncounted when disabled).
+  double temperature_of(const ads131::Response& r) noexcept;
+
   Ads131FluxgateConfig config_;
   hal::MagCounters counters_{};
   std::array<std::int32_t, 3> last_code_{};
@@ -61,7 +100,7 @@ class Ads131Fluxgate final : public hal::MagnetometerSource {
 
   // RESET, check the reset acknowledge (FF24h), write GAIN1 and MODE (RESET bit cleared), check
   // each WREG acknowledge. kNotReady if the device does not answer as expected, kBusError on an
-  // SPI failure.
+  // SPI failure, kInvalidArgument (nothing sent) if check_config() finds a problem.
   hal::Status init() noexcept;
 
   // Waits for a falling DRDY edge (up to timeout_us), clocks one NULL frame and decodes it.

@@ -48,6 +48,7 @@
 #include "magvec/drivers/sbg_can.hpp"
 #include "magvec/drivers/serial_fluxgate.hpp"
 #include "magvec/drivers/sim/random.hpp"
+#include "magvec/drivers/sim/serial_wire.hpp"
 #include "magvec/drivers/sim/simulator.hpp"
 #include "magvec/hal/can_bus.hpp"
 #include "magvec/hal/clock.hpp"
@@ -86,6 +87,11 @@ struct SimAds131Faults {
   double stuck_start_s{std::numeric_limits<double>::infinity()};
   double stuck_length_s{0};
   std::uint8_t stuck_axis{0};
+  // The temperature sensor on channel 3 (transfer.temperature.enabled) is open for the
+  // conversions in [start, start + len): its amplifier rails, the channel reads positive full
+  // scale (the driver gives no temperature for those samples and counts them).
+  double temperature_open_start_s{std::numeric_limits<double>::infinity()};
+  double temperature_open_length_s{0};
 };
 
 struct SimAds131Config {
@@ -104,6 +110,8 @@ struct SimAds131Injected {
                                        // code of a used channel (the driver's saturated)
   std::uint32_t resets{0};             // device resets injected
   std::uint32_t stuck_conversions{0};  // conversions in the stuck window
+  // Conversions with the temperature channel open (full scale; transfer.temperature.enabled).
+  std::uint32_t temperature_open{0};
   // What the driver must see in the data frames it reads (NULL command, CRC intact): frames with
   // STATUS.RESET (-> device_resets), frames a used channel of which has had one code for
   // transfer.stuck_count or more such frames since the last RESET command (-> stuck).
@@ -142,6 +150,8 @@ class SimAds131Device final : public hal::SpiBus, public hal::DataReadyLine {
   std::uint16_t gain1() const noexcept { return gain1_; }
 
  private:
+  // Channel 3 from the sample's temperature (transfer.temperature), or open (full scale).
+  void convert_temperature(const SimSample& s) noexcept;
   // Back to the register defaults (the RESET command or the injected fault).
   void reset_registers() noexcept;
   // The driver's stuck detector on a data frame it decodes.
@@ -204,7 +214,7 @@ class SimSerialFluxgate final : public hal::SerialPort {
   hal::Status write(std::span<const std::uint8_t> data, std::size_t& n_written) noexcept override;
 
   const SimSerialInjected& injected() const noexcept { return injected_; }
-  std::size_t buffered() const noexcept { return count_; }
+  std::size_t buffered() const noexcept { return wire_.size(); }
 
  private:
   void put(std::uint8_t b) noexcept;
@@ -214,9 +224,7 @@ class SimSerialFluxgate final : public hal::SerialPort {
   Xoshiro256 garbage_rng_;
   Xoshiro256 checksum_rng_;
   SimSerialInjected injected_{};
-  std::array<std::uint8_t, kBuffer> ring_{};
-  std::size_t head_{0};
-  std::size_t count_{0};
+  SerialWire<kBuffer> wire_;
 };
 
 // ---------------------------------------------------------------- SBG INS on CAN
@@ -230,12 +238,26 @@ struct SimSbgFaults {
   double duplicate_probability{0};  // per epoch: a frame received twice, or the epoch repeated
 };
 
+// Where the simulated platform is (the INS position messages; a geomagnetic model's input).
+// Default: a plausible survey site in the Bavarian Alpine foreland.
+struct SimSite {
+  double lat_deg{47.9};
+  double lon_deg{11.3};
+  double altitude_m{600.0};   // above mean sea level
+  double undulation_m{47.4};  // geoid above the WGS84 ellipsoid there (EGM2008, rounded)
+};
+
 struct SimSbgConfig {
   double rate_hz{100};                        // output rate (one epoch per period, from t = 0)
   std::uint32_t can_latency_us{500};          // CAN receive time - epoch time
   std::uint32_t ins_clock_offset_us{123456};  // INS time since power-on at host time 0
   double accuracy_rad{2.6e-4};                // reported 1-sigma (about 0.015 deg)
   std::uint32_t status01_every{10};           // STATUS_01 every N epochs
+  // EKF_POS + EKF_ALTITUDE after the attitude frames of every N-th epoch (0: none), of a platform
+  // that starts at `site` and moves at ground_speed_m_s along its true heading (0: it stays).
+  std::uint32_t position_every{10};
+  SimSite site{};
+  double ground_speed_m_s{0};
   sbg::CanIds ids{};
   SimSbgFaults faults{};
   std::uint64_t seed{3};
@@ -261,6 +283,10 @@ struct SimSbgInjected {
   std::uint32_t frames{0};           // frames queued
   std::uint32_t overflow_frames{0};  // frames lost because the bus queue was full
   std::uint32_t sent_by_host{0};     // frames the host sent to the INS (ignored)
+  std::uint32_t position_fixes{0};   // epochs with position frames sent
+  // Position frames truncated (corrupt_probability, a stream of their own so that the attitude
+  // frames' faults stay as they were): the decoder's position malformed.
+  std::uint32_t corrupted_position_frames{0};
 };
 
 class SimSbgIns final : public hal::CanBus {
@@ -278,9 +304,13 @@ class SimSbgIns final : public hal::CanBus {
 
   const SimSbgInjected& injected() const noexcept { return injected_; }
   double period_s() const noexcept { return 1.0 / config_.rate_hz; }
+  // The platform's true position at the last epoch emitted (the site until one moved it).
+  double lat_deg() const noexcept;
+  double lon_deg() const noexcept;
 
  private:
   void emit_epoch(std::uint64_t k, const HostTimeMap& time) noexcept;
+  void emit_position(std::uint64_t t_rx_us) noexcept;
   // Truncates `f` below min_dlc with the corruption probability; true if it did.
   bool corrupt(hal::CanFrame& f, std::uint8_t min_dlc) noexcept;
   void push(const hal::CanFrame& f) noexcept;
@@ -289,7 +319,10 @@ class SimSbgIns final : public hal::CanBus {
   SimSbgConfig config_;
   Xoshiro256 corrupt_rng_;
   Xoshiro256 duplicate_rng_;
+  Xoshiro256 position_rng_;
   SimSbgInjected injected_{};
+  double north_m_{0};  // travelled from the site
+  double east_m_{0};
   std::uint64_t next_epoch_{0};
   std::array<hal::CanFrame, kQueue> queue_{};
   std::size_t head_{0};

@@ -11,18 +11,21 @@
 //   fine.
 // - A column name is `<quantity>_<unit>`. Known quantities and accepted units:
 //     t (s); hx, hy, hz, F (nT, uT -> x1000); alpha, beta, gamma, yaw, pitch, roll, theta (deg,
-//     rad); qw, qx, qy, qz (no unit).
+//     rad); qw, qx, qy, qz (no unit); temperature (degC; C is read as degC too).
 //   A known quantity with another unit (hx_G, t_ms) or without a unit (hx) is an error. Any other
 //   column (hx_true_nT, flags, ...) is ignored but its values remain available through value().
 // - Required: t_s (unless CsvReaderOptions::require_time is false: then NaN), hx_nT, hy_nT,
 //   hz_nT. Optional: F_nT; attitude as alpha/beta/gamma (Li: R_bn =
 //   Ry(gamma) Rx(beta) Rz(alpha)), yaw/pitch/roll (aerospace NED/FRD) or qw..qz (rotates body
-//   vectors into ENU; R_bn = R(q)^T, must be unit within 1e-3); theta. A partial or a second
-//   attitude set is an error.
+//   vectors into ENU; R_bn = R(q)^T, must be unit within 1e-3); theta; temperature_degC (the
+//   sensor temperature, for calibrations with a temperature model). A partial or a second
+//   attitude set is an error. A file without a temperature column reads as before (no
+//   temperature in any record).
 // - Numbers: anything std::from_chars accepts, an optional leading '+', and nan (any case, optional
 //   sign). inf and empty fields are malformed. `nan` in any of hx/hy/hz marks a dropout (m
 //   all-NaN); nan in F, theta or any attitude column means "not available" for that row; t_s must
-//   be finite. A value that is no longer finite once scaled to nT / deg (1e306 uT) is an error.
+//   be finite. A value that is no longer finite once scaled to nT / deg (1e306 uT) is an error, and
+//   so is a temperature outside kTemperatureMin_degC .. kTemperatureMax_degC.
 // - A UTF-8 byte-order mark at the start of the file is skipped.
 // - Every row must have exactly as many fields as the header.
 // - Errors throw CsvError naming file, line and column.
@@ -69,7 +72,12 @@ struct CsvRecord {
   std::optional<core::Mat3<double>>
       r_bn;  // attitude (n -> body), when the file has one and the row is not nan
   std::optional<double> theta_deg;
+  std::optional<double> temperature_degC;  // sensor temperature, when the file has one (not nan)
 };
+
+// Plausible sensor temperatures: a value outside is a broken column, never a reading.
+inline constexpr double kTemperatureMin_degC = -273.15;
+inline constexpr double kTemperatureMax_degC = 1000.0;
 
 struct CsvReaderOptions {
   // Scalar reference for every row when the file has no F column ("one value by option").
@@ -99,6 +107,7 @@ class CsvReader {
   AttitudeColumns attitude_columns() const noexcept { return attitude_; }
   bool has_f() const noexcept { return col_f_.has_value(); }
   bool has_theta() const noexcept { return col_theta_.has_value(); }
+  bool has_temperature() const noexcept { return col_temperature_.has_value(); }
   bool has_time() const noexcept { return has_time_; }
   std::uint64_t line() const noexcept { return line_no_; }
 
@@ -132,7 +141,7 @@ class CsvReader {
   std::vector<std::string> names_;
   std::vector<std::string> comments_;
   Column col_t_{}, col_hx_{}, col_hy_{}, col_hz_{};
-  std::optional<Column> col_f_, col_theta_;
+  std::optional<Column> col_f_, col_theta_, col_temperature_;
   AttitudeColumns attitude_ = AttitudeColumns::kNone;
   Column col_att_[4]{};
   bool have_row_ = false;
@@ -187,5 +196,14 @@ class CsvWriter {
   std::string row_;
   std::uint64_t rows_ = 0;
 };
+
+// Writes samples as a recording the reader reads back: t_s, hx_nT, hy_nT, hz_nT, then F_nT when
+// any record has a reference, alpha_deg, beta_deg, gamma_deg (Li) when any has an attitude,
+// theta_deg when any has a turntable angle, temperature_degC when any has a temperature; a record
+// without such a value gets nan there (a dropout nan in hx..hz). Atomic like CsvWriter. Throws
+// std::domain_error for an infinite value and std::invalid_argument for a temperature outside
+// kTemperatureMin_degC .. kTemperatureMax_degC (the reader would refuse the file).
+void write_recording_csv(const std::string& path, std::span<const CsvRecord> records,
+                         const std::vector<std::string>& comment_lines = {});
 
 }  // namespace magvec::host::io

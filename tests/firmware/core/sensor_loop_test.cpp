@@ -472,5 +472,106 @@ TEST(SensorLoop, SigmaEnuFromTheHeldOutVectorScatterAndTheAttitudeNoise) {
   EXPECT_TRUE(std::isnan(loop.process(feed.next(truth_model(), &r), &r).sigma_enu_nT));
 }
 
+// A model reference (a geomagnetic model's F at the INS position): biased by up to its 1-sigma,
+// nearly noise-free. The held-out check judges the scatter of |h| - F against the noise and its
+// mean against the model's 1-sigma; the applied calibration's sigma_f carries the model's
+// 1-sigma and its records are flagged. Truth: |h_n| = 53 729 nT; the model says 90 nT more.
+struct ModelFeed : Feed {
+  double bias_nT{90};
+  MagSample<double> next(const SensorModel<double>& truth, Mat3<double>* r_bn) {
+    MagSample<double> s = Feed::next(truth, r_bn);
+    s.f_ref_nT += bias_nT;
+    return s;
+  }
+};
+
+template <typename Loop>
+void run_model_to_end(Loop& loop, ModelFeed& feed) {
+  Mat3<double> r;
+  loop.start_calibration();
+  for (int i = 0; i < 2000; ++i) {
+    (void)loop.process(feed.next(truth_model(), &r), &r);
+    if (loop.state() == CalState::kApplied || loop.state() == CalState::kFailed) return;
+  }
+}
+
+// The candidate a calibrator fits to the model's F: the truth scaled by F_model / F_true.
+SensorModel<double> scaled_to(double factor) {
+  SensorModel<double> m = truth_model();
+  m.w *= factor;
+  return m;
+}
+
+TEST(SensorLoop, ModelReferenceJudgesScatterByNoiseAndMeanByTheModelSigma) {
+  const double f_true = Vec3<double>(-4053, 25022, -47374).norm();
+  FakeCalibrator cal;
+  cal.result = scaled_to((f_true + 90) / f_true);
+  LoopConfig<double> cfg;
+  cfg.noise_nT = 0.3;
+  cfg.reference_sigma_nT = 138;
+  SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+  ModelFeed feed;
+  Mat3<double> r;
+  EXPECT_FALSE(loop.process(feed.next(truth_model(), &r), &r).flags & kOutModelReference);
+  run_model_to_end(loop, feed);
+  ASSERT_EQ(loop.state(), CalState::kApplied);
+  EXPECT_LT(loop.last_validation_rms_nT(), 1.0);          // the scatter: noise
+  EXPECT_NEAR(loop.last_validation_mean_nT(), 0.0, 0.2);  // fitted to the model's F
+  EXPECT_TRUE(loop.active_model_reference());
+  const OutputRecord<double> rec = loop.process(feed.next(truth_model(), &r), &r);
+  EXPECT_TRUE(rec.flags & kOutModelReference);
+  // Absolute: the model's 1-sigma dominates; |h| is the model's F, 90 nT above the truth.
+  EXPECT_NEAR(rec.sigma_f_nT, std::hypot(0.3, 138.0), 0.01);
+  EXPECT_NEAR(rec.intensity_nT - f_true, 90.0, 2.0);
+}
+
+TEST(SensorLoop, ModelReferenceAcceptsTheTrueScaleWithinTheModelSigma) {
+  // A candidate at the true scale sits 90 nT below the model's F: a measured reference would
+  // refuse it (RMS 90 nT against 0.3 nT of noise); a model reference accepts the offset as the
+  // model's own error (within 3 x 138 nT) and the noise-level scatter.
+  for (const double sigma : {std::numeric_limits<double>::quiet_NaN(), 138.0}) {
+    FakeCalibrator cal;
+    cal.result = truth_model();
+    LoopConfig<double> cfg;
+    cfg.noise_nT = 0.3;
+    cfg.reference_sigma_nT = sigma;
+    SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+    ModelFeed feed;
+    run_model_to_end(loop, feed);
+    if (std::isnan(sigma)) {
+      EXPECT_EQ(loop.failure(), CalFailure::kValidationFailed);
+      EXPECT_NEAR(loop.last_validation_rms_nT(), 90.0, 0.5);
+    } else {
+      ASSERT_EQ(loop.state(), CalState::kApplied);
+      EXPECT_NEAR(loop.last_validation_mean_nT(), -90.0, 0.5);
+      EXPECT_LT(loop.last_validation_rms_nT(), 1.0);
+    }
+  }
+}
+
+TEST(SensorLoop, ModelReferenceRefusesAMeanBeyondThreeModelSigmas) {
+  // The model's F is 500 nT off the field the candidate fits (a wrong position or date, a strong
+  // anomaly): the scatter is fine, the mean is not.
+  FakeCalibrator cal;
+  cal.result = truth_model();
+  LoopConfig<double> cfg;
+  cfg.noise_nT = 0.3;
+  cfg.reference_sigma_nT = 138;
+  SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+  loop.set_active(truth_model(), 3);
+  ModelFeed feed;
+  feed.bias_nT = 500;
+  run_model_to_end(loop, feed);
+  EXPECT_EQ(loop.failure(), CalFailure::kReferenceMismatch);
+  EXPECT_STREQ(cal_failure_name(loop.failure()), "reference_mismatch");
+  EXPECT_EQ(loop.cal_id(), 3u);  // the active one stays
+  // An installed calibration says itself whether its scale came from a model.
+  loop.set_active(truth_model(), 4, true, 138.0, 140.0, true);
+  Mat3<double> r;
+  EXPECT_TRUE(loop.process(feed.next(truth_model(), &r), &r).flags & kOutModelReference);
+  loop.set_active(truth_model(), 5);
+  EXPECT_FALSE(loop.process(feed.next(truth_model(), &r), &r).flags & kOutModelReference);
+}
+
 }  // namespace
 }  // namespace magvec::core

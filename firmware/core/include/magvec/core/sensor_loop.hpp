@@ -11,6 +11,10 @@
 // gating, state and bookkeeping; the calibrator owns the estimation math). It must provide:
 //   void begin() noexcept;                                   start a new calibration
 //   CalibratorAdd add(const Vec3<S>& m, S f_ref_nT, const Mat3<S>* r_bn) noexcept;
+//     or, for a calibrator that needs more of the sample (time stamp, temperature: the online
+//     vector filter derives its rate and interval from successive samples), instead
+//   CalibratorAdd add(const MagSample<S>& s, const Mat3<S>* r_bn) noexcept;
+//     (the loop calls this form when the calibrator provides it, else the first);
 //   S progress() const noexcept;                             0..1 (coverage / convergence)
 //   bool ready() const noexcept;                             enough data to solve
 //   CalibratorSolve solve(SensorModel<S>* out) noexcept;     candidate model or a failure code
@@ -26,6 +30,7 @@
 #pragma once
 
 #include <cmath>
+#include <concepts>
 #include <cstdint>
 #include <limits>
 
@@ -53,6 +58,10 @@ enum OutputFlag : std::uint32_t {
   // The sample stands out from both neighbours (a spike; SamplePipeline's spike screen): its
   // values are kept, flagged; the calibrator never sees it.
   kOutSpike = 1u << 8,
+  // The active calibration's absolute scale comes from a model reference field (a geomagnetic
+  // model at the INS position, LoopConfig::reference_sigma_nT): |h| is as accurate as the model
+  // (sigma_f includes the model's 1-sigma); its scatter is the held-out one.
+  kOutModelReference = 1u << 9,
 };
 
 enum class CalState : std::uint8_t { kIdle, kCollecting, kSolving, kValidating, kApplied, kFailed };
@@ -81,6 +90,9 @@ enum class CalFailure : std::uint8_t {
   kValidationFailed,  // held-out residuals not better than the active calibration / above bound
   kNoReference,       // validation needs a scalar reference and none arrived
   kVectorValidationFailed,  // held-out E/N/U scatter above the attitude-noise floor: Rm is wrong
+  // Model reference: the held-out mean of |h| - F lies beyond the model's stated 1-sigma times
+  // LoopConfig::validation_max_reference_sigmas (a wrong position or date, or a local anomaly).
+  kReferenceMismatch,
 };
 
 constexpr const char* cal_failure_name(CalFailure f) noexcept {
@@ -95,6 +107,8 @@ constexpr const char* cal_failure_name(CalFailure f) noexcept {
       return "no_reference";
     case CalFailure::kVectorValidationFailed:
       return "vector_validation_failed";
+    case CalFailure::kReferenceMismatch:
+      return "reference_mismatch";
   }
   return "unknown";
 }
@@ -171,11 +185,25 @@ struct LoopConfig {
   Scalar validation_max_vector_rms_factor{3};
   // The owner runs the calibrator's solve and hands the result to install_solve() (see the top).
   bool external_solve{false};
+  // The reference F is a model (a geomagnetic model at the INS position) with this stated
+  // 1-sigma; NaN: a measured reference (scalar magnetometer, or a given value judged alike). A
+  // model's F is biased by up to its 1-sigma but nearly noise-free, so the held-out check then
+  // splits |h| - F into its scatter about the mean, judged against the noise bound as the RMS is
+  // otherwise, and its mean, judged against validation_max_reference_sigmas * reference_sigma_nT;
+  // an applied calibration's sigma_f is the scatter and the model's 1-sigma combined (its
+  // absolute accuracy cannot be better than the model's) and its records carry kOutModelReference.
+  Scalar reference_sigma_nT{std::numeric_limits<Scalar>::quiet_NaN()};
+  Scalar validation_max_reference_sigmas{3};
 };
 
 template <typename Scalar, typename Calibrator>
 class SensorLoop {
   static constexpr Scalar kNaN = std::numeric_limits<Scalar>::quiet_NaN();
+  // The calibrator takes the whole sample (the extended add of the contract at the top).
+  static constexpr bool kTakesSample =
+      requires(Calibrator & c, const MagSample<Scalar>& m, const Mat3<Scalar>* r) {
+    { c.add(m, r) } -> std::same_as<CalibratorAdd>;
+  };
 
  public:
   SensorLoop(Calibrator& calibrator, const LoopConfig<Scalar>& config) noexcept
@@ -187,11 +215,15 @@ class SensorLoop {
   // aligned: the model's Rm is an estimate (records are flagged kOutNotAligned otherwise);
   // sigma_f_nT, sigma_enu_nT: the 1-sigma of |h| and of each E/N/U component the calibration
   // achieved (NaN: not known; sigma_f then falls back to the configured noise).
+  // model_reference: its scale came from a model reference (kOutModelReference; sigma_f_nT should
+  // then include the model's 1-sigma).
   void set_active(const SensorModel<Scalar>& model, std::uint32_t cal_id, bool aligned = true,
                   Scalar sigma_f_nT = std::numeric_limits<Scalar>::quiet_NaN(),
-                  Scalar sigma_enu_nT = std::numeric_limits<Scalar>::quiet_NaN()) noexcept {
+                  Scalar sigma_enu_nT = std::numeric_limits<Scalar>::quiet_NaN(),
+                  bool model_reference = false) noexcept {
     active_.set_model(model);
     cal_id_ = cal_id;
+    active_model_reference_ = model_reference;
     if (cal_id > max_cal_id_) max_cal_id_ = cal_id;
     active_aligned_ = aligned;
     // fmax ignores a NaN operand: the known one of the two, NaN only when neither is known.
@@ -202,6 +234,12 @@ class SensorLoop {
         aligned && std::isfinite(sigma_enu_nT) ? std::fmax(sigma_enu_nT, active_sigma_f_) : kNaN;
   }
   bool active_aligned() const noexcept { return active_aligned_ && cal_id_ != 0; }
+  // The active calibration's scale came from a model reference (kOutModelReference).
+  bool active_model_reference() const noexcept { return active_model_reference_ && cal_id_ != 0; }
+  // What kind of reference F the samples carry from now on (LoopConfig::reference_sigma_nT): a
+  // calibration validated afterwards is judged, and flagged, accordingly.
+  void set_reference_sigma_nT(Scalar sigma_nT) noexcept { config_.reference_sigma_nT = sigma_nT; }
+  Scalar reference_sigma_nT() const noexcept { return config_.reference_sigma_nT; }
   // The 1-sigma of |h| in the records: the held-out intensity RMS of the applied calibration
   // against the scalar reference (noise and calibration error together), never below the noise.
   Scalar active_sigma_f_nT() const noexcept { return active_sigma_f_; }
@@ -227,7 +265,10 @@ class SensorLoop {
   const LoopHealth& health() const noexcept { return health_; }
   // The candidate of the last solve (valid in kValidating, kApplied, and kFailed after validation).
   const SensorModel<Scalar>& candidate() const noexcept { return candidate_.model(); }
+  // Held-out |h| - F of the last candidate: its RMS, or with a model reference its scatter about
+  // the mean; and its mean.
   Scalar last_validation_rms_nT() const noexcept { return last_validation_rms_; }
+  Scalar last_validation_mean_nT() const noexcept { return last_validation_mean_; }
   // E/N/U scatter of the last validated candidate (NaN: not checked: not aligned, or too few
   // held-out samples with attitude).
   Scalar last_validation_vector_rms_nT() const noexcept { return last_vector_rms_; }
@@ -255,6 +296,7 @@ class SensorLoop {
     ++health_.samples;
     if (cal_id_ == 0) rec.flags |= kOutUncalibrated;
     if (cal_id_ == 0 || !active_aligned_) rec.flags |= kOutNotAligned;
+    if (cal_id_ != 0 && active_model_reference_) rec.flags |= kOutModelReference;
     if (state_ == CalState::kCollecting || state_ == CalState::kSolving ||
         state_ == CalState::kValidating) {
       rec.flags |= kOutCalibrating;
@@ -293,7 +335,12 @@ class SensorLoop {
                         OutputRecord<Scalar>* rec) noexcept {
     switch (state_) {
       case CalState::kCollecting: {
-        const CalibratorAdd a = calibrator_.add(s.m_nT, s.f_ref_nT, r_bn);
+        CalibratorAdd a;
+        if constexpr (kTakesSample) {
+          a = calibrator_.add(s, r_bn);
+        } else {
+          a = calibrator_.add(s.m_nT, s.f_ref_nT, r_bn);
+        }
         if (a == CalibratorAdd::kUsed) ++health_.cal_used;
         if (a == CalibratorAdd::kGated) {
           ++health_.cal_gated;
@@ -342,6 +389,8 @@ class SensorLoop {
     sum_sq_candidate_ = 0;
     missing_reference_ = 0;
     sum_sq_active_ = 0;
+    sum_candidate_ = 0;
+    sum_active_ = 0;
     sum_f_ = 0;
     vector_count_ = 0;
     vector_sum_.setZero();
@@ -362,6 +411,8 @@ class SensorLoop {
     const Scalar ra = act.intensity - s.f_ref_nT;
     sum_sq_candidate_ += rc * rc;
     sum_sq_active_ += ra * ra;
+    sum_candidate_ += rc;
+    sum_active_ += ra;
     sum_f_ += s.f_ref_nT;
     if (candidate_aligned_ && r_bn != nullptr) {
       // About the first vector (shifted sums: no cancellation of 50 000 nT squares in float).
@@ -374,9 +425,20 @@ class SensorLoop {
     }
     if (++validation_count_ < config_.validation_samples) return;
     const Scalar n = static_cast<Scalar>(validation_count_);
-    const Scalar rms_c = std::sqrt(sum_sq_candidate_ / n);
-    const Scalar rms_a = std::sqrt(sum_sq_active_ / n);
+    const Scalar mean_c = sum_candidate_ / n;
+    const Scalar mean_a = sum_active_ / n;
+    const bool model_reference = std::isfinite(config_.reference_sigma_nT);
+    // Measured reference: the RMS. Model reference: the scatter about the mean (the model's bias
+    // is no noise of the candidate's, and an active calibration from another reference may sit
+    // at another mean); the mean is judged on its own below.
+    const auto spread = [n, model_reference](Scalar sum_sq, Scalar mean) {
+      return model_reference ? std::sqrt(std::fmax(sum_sq / n - mean * mean, Scalar(0)))
+                             : std::sqrt(sum_sq / n);
+    };
+    const Scalar rms_c = spread(sum_sq_candidate_, mean_c);
+    const Scalar rms_a = spread(sum_sq_active_, mean_a);
     last_validation_rms_ = rms_c;
+    last_validation_mean_ = mean_c;
     const Scalar bound = std::fmax(config_.validation_max_rms_factor * candidate_noise_,
                                    config_.validation_min_rms_nT);
     const bool better = cal_id_ == 0 || !config_.validate_against_active || rms_c <= rms_a;
@@ -384,8 +446,18 @@ class SensorLoop {
       fail(CalFailure::kValidationFailed, 0);
       return;
     }
-    // sigma_f: the held-out intensity RMS (noise and calibration error), never below the noise.
-    const Scalar sigma_f = std::fmax(rms_c, candidate_noise_);
+    if (model_reference &&
+        std::fabs(mean_c) > config_.validation_max_reference_sigmas * config_.reference_sigma_nT) {
+      fail(CalFailure::kReferenceMismatch, 0);
+      return;
+    }
+    // sigma_f: the held-out intensity RMS (noise and calibration error), never below the noise;
+    // with a model reference combined with the model's 1-sigma, which bounds the absolute scale.
+    const Scalar relative_f = std::fmax(rms_c, candidate_noise_);
+    const Scalar sigma_f = model_reference
+                               ? std::sqrt(relative_f * relative_f +
+                                           config_.reference_sigma_nT * config_.reference_sigma_nT)
+                               : relative_f;
     // Attitude noise seen as field: F sigma_att (NaN when the attitude noise is not known).
     const Scalar att = deg_to_rad(candidate_att_noise_deg_) * (sum_f_ / n);
     last_vector_rms_ = std::numeric_limits<Scalar>::quiet_NaN();
@@ -405,6 +477,7 @@ class SensorLoop {
     }
     active_ = candidate_;
     active_aligned_ = candidate_aligned_;
+    active_model_reference_ = model_reference;
     active_sigma_f_ = sigma_f;
     // Per E/N/U axis: the held-out scatter measures noise, attitude noise and a wrong Rm
     // together; it is never taken below the intensity's sigma and the attitude noise (a short
@@ -440,6 +513,10 @@ class SensorLoop {
   Scalar sum_sq_candidate_{0};
   Scalar sum_sq_active_{0};
   Scalar last_validation_rms_{0};
+  Scalar last_validation_mean_{0};
+  Scalar sum_candidate_{0};
+  Scalar sum_active_{0};
+  bool active_model_reference_{false};
   Scalar last_vector_rms_{std::numeric_limits<Scalar>::quiet_NaN()};
   bool active_aligned_{false};
   bool candidate_aligned_{false};

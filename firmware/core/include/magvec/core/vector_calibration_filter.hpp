@@ -16,7 +16,10 @@
 // lose updates below the resolution of values of order one (E-VF-A).
 // Start: from a stored calibration with its 1-sigmas, or from the first well-spread samples: the
 // batch calibrator (one-step fit, batch_calibrator.hpp) gives the linearisation point and the
-// filter then replays those samples from a diffuse prior (E-VF-1).
+// filter then replays those samples from a diffuse prior (E-VF-1). Replays are Gauss-Newton steps
+// (every sample linearised at the pass's start) and take every sample seen while collecting, kept
+// in a replay store of kReplayCapacity samples; after a stored start the first kReplayCapacity
+// samples are replayed the same way from the stored prior.
 // Fixed-size, heap-free, noexcept, float and double.
 #pragma once
 
@@ -150,13 +153,17 @@ struct VfConfig {
   int init_samples = 48;                     // kept samples before the batch fit
   Scalar init_min_rotation_deg = Scalar(2);  // attitude change between kept samples
   int init_replay_passes = 12;               // most relinearised replays of the kept samples
-  Scalar prior_w_sigma = Scalar(0.01);       // diffuse prior of the replay (and fallbacks)
+  // Gauss-Newton passes over every sample seen while collecting (the replay store), after the
+  // kept samples' passes have settled (E-VF-1); 0: the kept samples only.
+  int init_full_passes = 2;
+  Scalar prior_w_sigma = Scalar(0.01);  // diffuse prior of the replay (and fallbacks)
   Scalar prior_o_sigma_nT = Scalar(50);
   Scalar prior_rm_sigma_rad = deg_to_rad(Scalar(2));
   Scalar prior_h_n_sigma_nT = Scalar(200);
   // Misalignment error folded into the quaternion when its norm exceeds this (0: after every
-  // update). float32 defers the fold: a correction below the quaternion's resolution would be lost.
-  Scalar rm_fold_rad = std::is_same_v<Scalar, float> ? Scalar(2e-4) : Scalar(0);
+  // update, in both precisions). A deferred fold leaves the Jacobian about Rm_nom Exp(-phi) off by
+  // O(|phi|): with 2e-4 rad, float32 moved the time offset by 0.13 sigma from double (E-VF-A).
+  Scalar rm_fold_rad{0};
   // Gating and divergence (E-VF-8).
   Scalar gate_nis = Scalar(25);  // per scalar update, chi-square 1 dof; <= 0: off
   bool divergence_detection = true;
@@ -195,10 +202,11 @@ struct VfSigmas {
   Vec3<Scalar> tc_nT_per_degC = Vec3<Scalar>::Zero();
 };
 
-template <typename Scalar, int kInitCapacity = 64>
+template <typename Scalar, int kInitCapacity = 64, int kReplayCapacity = 512>
 class VectorCalibrationFilter {
   static_assert(CoreScalar<Scalar>);
   static_assert(kInitCapacity >= 16, "the start from data needs well over 14 samples");
+  static_assert(kReplayCapacity >= 0);
 
  public:
   // State layout (E-VF-A). W entries in Li structure: W = (Ks Ko)^-1 is lower triangular in the
@@ -233,6 +241,7 @@ class VectorCalibrationFilter {
     cfg_ = cfg;
     cfg_.init_samples = std::clamp(cfg_.init_samples, 16, kInitCapacity);
     cfg_.init_replay_passes = std::max(cfg_.init_replay_passes, 1);
+    cfg_.init_full_passes = std::max(cfg_.init_full_passes, 0);
     cfg_.nis_window = std::max(cfg_.nis_window, 10);
     cfg_.field_change_after = std::max(cfg_.field_change_after, 1);
     counters_ = VfCounters{};
@@ -287,7 +296,10 @@ class VectorCalibrationFilter {
                           ? in.interval_s
                           : cfg_.sample_interval_s;
     add_process_noise(dt);
-    return live_step(p);
+    if (settling_) remember(in, f, counters_.samples);
+    const VfStatus st = live_step(p);
+    if (settling_ && running_ && replay_n_ >= kReplayCapacity) return settle(st);
+    return st;
   }
 
   bool initialised() const noexcept { return running_; }
@@ -413,7 +425,10 @@ class VectorCalibrationFilter {
   // ----------------------------------------------------------------
   void restart() noexcept {
     running_ = false;
+    settling_ = false;
     batch_.reset();
+    replay_n_ = 0;
+    replay_head_ = 0;
     BatchConfig<Scalar> bc;
     bc.mag_noise_nT = cfg_.mag_noise_nT;
     bc.attitude_noise_deg = rad_to_deg(cfg_.attitude_noise_rad);
@@ -576,6 +591,37 @@ class VectorCalibrationFilter {
     if (!ud_factorise(p)) return;
     running_ = true;
     reset_windows();
+    // The prior, for the Gauss-Newton passes over the first samples (E-VF-1).
+    settling_ = kReplayCapacity > 0 && cfg_.init_full_passes > 0;
+    settle_nom_ = nom_;
+    settle_rm_ = rm_nom_;
+    settle_p_ = p;
+    replay_n_ = 0;
+    replay_head_ = 0;
+  }
+
+  // After a start from a stored calibration, once the replay store is full: Gauss-Newton passes
+  // over its samples from the stored prior, each linearised at the previous pass's result, so the
+  // first samples' information is taken at a good linearisation point (E-VF-1).
+  VfStatus settle(VfStatus status) noexcept {
+    settling_ = false;
+    for (int pass = 0; pass < cfg_.init_full_passes; ++pass) {
+      fold_all();
+      StateMat p = settle_p_;
+      apply_holds(&p);
+      if (!ud_factorise(p)) return reset(VfResetReason::kCovarianceNotPositive);
+      // The prior mean as an error about the new nominal: Rm_prior = Rm_nom Exp(-[phi x]).
+      x_ = settle_nom_ - nom_;
+      const Eigen::AngleAxis<Scalar> aa(rm_nom_.conjugate() * settle_rm_);
+      x_.template segment<3>(kRm0) = -aa.angle() * aa.axis();
+      for (int k = 0; k < kStates; ++k)
+        if (held_[static_cast<std::size_t>(k)]) x_(k) = Scalar(0);
+      if (!replay_samples(true)) return reset(VfResetReason::kNonFiniteState);
+    }
+    replay_n_ = 0;
+    replay_head_ = 0;
+    reset_windows();
+    return status;
   }
 
   // Motion-decimated collection (E-VF-1); the batch fit when enough samples are kept.
@@ -583,6 +629,8 @@ class VectorCalibrationFilter {
     Scalar f = f_nT;
     if (!std::isfinite(f) && cfg_.reference_field_nT > Scalar(0)) f = cfg_.reference_field_nT;
     if (!std::isfinite(f)) return VfStatus::kRejectedNoReference;
+    const std::uint32_t seq = counters_.samples;
+    remember(in, f_nT, seq);
     if (n_kept_ > 0) {
       const Mat3<Scalar> last = batch_.store()[static_cast<std::size_t>(n_kept_ - 1)].r_bn();
       if (rotation_angle_between(last, in.r_bn) < deg_to_rad(min_rotation_deg_))
@@ -594,6 +642,7 @@ class VectorCalibrationFilter {
     kept_omega_.col(n_kept_) = in.omega_n_rad_s;
     kept_t_(n_kept_) = last_t_;
     kept_has_f_[i] = std::isfinite(f_nT);
+    kept_seq_[i] = seq;
     ++n_kept_;
     if (n_kept_ < cfg_.init_samples) return VfStatus::kCollecting;
     if (start_from_data()) return VfStatus::kInitialised;
@@ -618,6 +667,7 @@ class VectorCalibrationFilter {
       kept_omega_.col(j) = kept_omega_.col(i);
       kept_t_(j) = kept_t_(i);
       kept_has_f_[ju] = kept_has_f_[static_cast<std::size_t>(i)];
+      kept_seq_[ju] = kept_seq_[static_cast<std::size_t>(i)];
     }
     batch_.reset();
     for (int j = 0; j < half; ++j) {
@@ -631,6 +681,26 @@ class VectorCalibrationFilter {
     min_rotation_deg_ = cfg_.init_min_rotation_deg;
     batch_.reset();
     n_kept_ = 0;
+    replay_n_ = 0;
+    replay_head_ = 0;
+  }
+  // Every sample seen while collecting, for the final replay passes (a ring: the oldest go first).
+  void remember(const VfSample<Scalar>& in, Scalar f_nT, std::uint32_t seq) noexcept {
+    if constexpr (kReplayCapacity > 0) {
+      ReplaySample& r = replay_[static_cast<std::size_t>(replay_head_)];
+      r.m_nT = in.m_nT;
+      r.q = Quat<Scalar>(in.r_bn);
+      r.omega = in.omega_n_rad_s;
+      r.f_nT = f_nT;
+      r.temperature_degC = last_t_;
+      r.seq = seq;
+      replay_head_ = (replay_head_ + 1) % kReplayCapacity;
+      replay_n_ = std::min(replay_n_ + 1, kReplayCapacity);
+    } else {
+      (void)in;
+      (void)f_nT;
+      (void)seq;
+    }
   }
 
   bool start_from_data() noexcept {
@@ -667,20 +737,28 @@ class VectorCalibrationFilter {
       final_pass = chi2_per_obs <= kReplaySettled || pass + 1 == cfg_.init_replay_passes;
       noise_factor_ =
           chi2_per_obs <= kReplaySettled ? Scalar(1) : std::sqrt(std::max(chi2_per_obs, Scalar(1)));
-      if (!replay_pass()) {
+      if (!replay_pass(false)) {
         noise_factor_ = Scalar(1);
         return false;
       }
     }
     noise_factor_ = Scalar(1);
+    if (replay_n_ > 0) {
+      for (int pass = 0; pass < cfg_.init_full_passes; ++pass) {
+        fold_all();
+        if (!replay_pass(true)) return false;
+      }
+    }
     running_ = true;
     reset_windows();
     restart_collection();
     return true;
   }
 
-  // One replay of the kept samples from the diffuse prior at the current (folded) estimate.
-  bool replay_pass() noexcept {
+  // One replay from the diffuse prior at the current (folded) estimate: a Gauss-Newton step, every
+  // sample linearised at the pass's start (E-VF-1). `all`: every sample seen while collecting
+  // (the kept ones older than the replay store, then the store), else the kept samples only.
+  bool replay_pass(bool all) noexcept {
     LiParams<Scalar> li_now;
     if (to_li(model_nominal(), &li_now) != ConversionStatus::kOk) return false;
     LiSigmas<Scalar> none;
@@ -692,14 +770,36 @@ class VectorCalibrationFilter {
     StateMat p = prior_covariance(li_now, none, nan3, kNaN, nan3);
     apply_holds(&p);
     if (!ud_factorise(p)) return false;
+    return replay_samples(all);
+  }
+  bool replay_samples(bool all) noexcept {
+    lin_at_nominal_ = true;
+    const std::uint32_t oldest =
+        all && replay_n_ > 0
+            ? replay_[static_cast<std::size_t>((replay_head_ + kReplayCapacity - replay_n_) %
+                                               std::max(kReplayCapacity, 1))]
+                  .seq
+            : std::numeric_limits<std::uint32_t>::max();
     for (int i = 0; i < n_kept_; ++i) {
       const StoredSample<Scalar>& s = batch_.store()[static_cast<std::size_t>(i)];
-      if (s.outlier()) continue;
+      if (s.outlier() || kept_seq_[static_cast<std::size_t>(i)] >= oldest) continue;
       const Prepared pr = kept(i);
       if (std::isfinite(pr.f)) reference_update(pr.f, false);
       vector_update(pr, false);
-      maybe_fold_rm();
     }
+    if (all) {
+      for (int j = 0; j < replay_n_; ++j) {
+        const ReplaySample& r = replay_[static_cast<std::size_t>(
+            (replay_head_ + kReplayCapacity - replay_n_ + j) % std::max(kReplayCapacity, 1))];
+        const Prepared pr =
+            prepare(r.m_nT, r.q.toRotationMatrix(), r.omega, r.f_nT, r.temperature_degC);
+        if (std::isfinite(pr.f)) reference_update(pr.f, false);
+        // Outliers: the kept samples have the batch fit's screen, these the gate (the pass starts
+        // near the solution: after the kept samples' passes, or after the live samples).
+        vector_update(pr, true);
+      }
+    }
+    lin_at_nominal_ = false;
     return x_.allFinite() && d_.allFinite() && (d_.array() > Scalar(0)).all();
   }
   Prepared kept(int i) const noexcept {
@@ -795,9 +895,12 @@ class VectorCalibrationFilter {
 
   // Whitened residual and Jacobian of a vector sample at the current estimate (E-VF-2, E-VF-3).
   bool linearise(const Prepared& p, Vec3<Scalar>* rw, Mat<Scalar, 3, kStates>* hw) const noexcept {
-    const StateVec xf = full();
-    const Mat3<Scalar> wm = w();
-    const Mat3<Scalar> rmt = rm_current().toRotationMatrix().transpose();
+    const StateVec xf = lin_at_nominal_ ? nom_ : full();
+    Mat3<Scalar> wm = Mat3<Scalar>::Zero();
+    for (int k = 0; k < kWEntries; ++k)
+      wm(kWRow[static_cast<std::size_t>(k)], kWCol[static_cast<std::size_t>(k)]) = xf(kW0 + k);
+    const Mat3<Scalar> rmt =
+        (lin_at_nominal_ ? rm_nom_ : rm_current()).toRotationMatrix().transpose();
     const Scalar tau = xf(kDt);
     const Mat3<Scalar> e = exp_so3(Vec3<Scalar>(-tau * p.omega));
     const Mat3<Scalar> et_r = e * p.r.transpose();  // E R^T
@@ -867,13 +970,16 @@ class VectorCalibrationFilter {
   }
 
   Scalar reference_sigma() const noexcept {
+    // Floor at the resolution of a normalised field of order one. (A floor of 16 eps made float32
+    // weight the reference at 0.1 nT instead of the configured 0.01 nT: another model, E-VF-8.)
     return std::max(cfg_.reference_sigma_nT / scale_or_one(),
-                    Scalar(16) * std::numeric_limits<Scalar>::epsilon());
+                    std::numeric_limits<Scalar>::epsilon());
   }
 
   // Scalar reference |h_n| = F (E-VF-4). Returns false when gated.
   bool reference_update(Scalar f, bool gate) noexcept {
-    const Vec3<Scalar> hn = full().template segment<3>(kHn0);
+    // In a replay pass the reference is linearised at the pass's start like the vector samples.
+    const Vec3<Scalar> hn = (lin_at_nominal_ ? nom_ : full()).template segment<3>(kHn0);
     const Scalar n = hn.norm();
     if (!(n > Scalar(0))) return false;
     // First-estimate Jacobian: the direction is fixed at the start (and at a field re-open). A
@@ -884,7 +990,8 @@ class VectorCalibrationFilter {
     h.template segment<3>(kHn0) = ref_dir_;
     const Scalar sf = noise_factor_ * reference_sigma();
     const Scalar r = sf * sf;
-    const Scalar nu = f - n;
+    Scalar nu = f - n;
+    if (lin_at_nominal_) nu -= ref_dir_.dot(x_.template segment<3>(kHn0));
     const StateVec fv = ut_times(h);
     const Scalar s_pred = fv.dot(d_.cwiseProduct(fv)) + r;
     const Scalar nis = nu * nu / s_pred;
@@ -905,15 +1012,16 @@ class VectorCalibrationFilter {
     if (!linearise(p, &rw, &hw)) return VecResult::kFailed;
     std::array<StateVec, 3> f;
     Scalar nis_max{0};
+    const StateVec x_lin = lin_at_nominal_ ? StateVec::Zero() : x_;
     for (int j = 0; j < 3; ++j) {
       f[static_cast<std::size_t>(j)] = ut_times(hw.row(j).transpose());
       const StateVec& fj = f[static_cast<std::size_t>(j)];
       const Scalar sj = fj.dot(d_.cwiseProduct(fj)) + Scalar(1);
-      nis_max = std::max(nis_max, rw(j) * rw(j) / sj);
+      const Scalar nuj = rw(j) + hw.row(j).dot(x_ - x_lin);
+      nis_max = std::max(nis_max, nuj * nuj / sj);
     }
     last_nis_ = nis_max;
     if (gate && cfg_.gate_nis > Scalar(0) && !(nis_max <= cfg_.gate_nis)) return VecResult::kGated;
-    const StateVec x_lin = x_;
     for (int j = 0; j < 3; ++j) {
       const StateVec hj = hw.row(j).transpose();
       const StateVec fj = j == 0 ? f[0] : ut_times(hj);
@@ -1072,6 +1180,24 @@ class VectorCalibrationFilter {
   Mat<Scalar, 3, kInitCapacity> kept_omega_ = Mat<Scalar, 3, kInitCapacity>::Zero();
   Vec<Scalar, kInitCapacity> kept_t_ = Vec<Scalar, kInitCapacity>::Zero();
   std::array<bool, static_cast<std::size_t>(kInitCapacity)> kept_has_f_{};
+  std::array<std::uint32_t, static_cast<std::size_t>(kInitCapacity)> kept_seq_{};
+  struct ReplaySample {
+    Vec3<Scalar> m_nT = Vec3<Scalar>::Zero();
+    Quat<Scalar> q = Quat<Scalar>::Identity();  // R_bn (4 numbers instead of 9)
+    Vec3<Scalar> omega = Vec3<Scalar>::Zero();
+    Scalar f_nT{0};              // NaN: none
+    Scalar temperature_degC{0};  // the last one seen at the time
+    std::uint32_t seq = 0;       // counters_.samples at the time
+  };
+  std::array<ReplaySample, static_cast<std::size_t>(std::max(kReplayCapacity, 1))> replay_{};
+  int replay_n_ = 0;
+  int replay_head_ = 0;
+  bool lin_at_nominal_ = false;  // replay: every sample linearised at the pass's start
+  // Start from a stored calibration: its prior, kept for the passes over the first samples.
+  bool settling_ = false;
+  StateVec settle_nom_ = StateVec::Zero();
+  Quat<Scalar> settle_rm_ = Quat<Scalar>::Identity();
+  StateMat settle_p_ = StateMat::Zero();
   // Tilt statistics of the body-frame vertical (Welford).
   std::uint32_t tilt_n_ = 0;
   Vec3<Scalar> tilt_mean_ = Vec3<Scalar>::Zero();

@@ -660,11 +660,25 @@ VectorEkfRun run_vector_ekf(const std::string& path, const io::CsvReaderOptions&
              " start-up samples (each a few degrees of attitude change from the last): the "
              "recording does not turn enough; rotate through more headings and tilts";
     }
+    // The start fits the one-step model to a small set kept by attitude change (E-VF-1); say what
+    // its refusal means for that set, which can differ from the recording as a whole.
+    std::string why;
+    if (run.last_init_verdict == "unobservable_heading_misalignment") {
+      why =
+          "the kept set does not determine the misalignment about the vertical (too little tilt "
+          "among its samples, or noise too large for so few)";
+    } else if (run.last_init_verdict == "insufficient_coverage") {
+      why = "the kept set does not determine every parameter (too few directions for the noise)";
+    } else {
+      why = "the kept set's fit was refused";
+    }
     return "the filter never started: " + std::to_string(k.init_attempts) + " start" +
-           (k.init_attempts == 1 ? "" : "s") +
-           " from data tried, all refused (the last batch fit: " + run.last_init_verdict +
-           "; tilt spread " + f2(run.tilt_spread_deg, 2) +
-           " deg); rotate through more headings and tilts, or check the noise figures";
+           (k.init_attempts == 1 ? "" : "s") + " from data tried on " + std::to_string(need) +
+           " samples kept by attitude change, all refused by the start's batch fit (the last: " +
+           run.last_init_verdict + ": " + why + "; the whole recording's tilt spread is " +
+           f2(run.tilt_spread_deg, 2) + " deg, magnetometer noise " + f2(run.noise_nT, 1) +
+           " nT); rotate through more tilts early in the recording, or use --method li-ml, which "
+           "fits every sample at once";
   };
   switch (run.verdict_code) {
     case core::Verdict::kOk:

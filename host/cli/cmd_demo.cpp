@@ -3,7 +3,8 @@
 // manoeuvre, then survey lines) is played through simulated devices speaking the real bytes
 // (ADS131M04 on SPI + DRDY, SBG INS on CAN, with a few injected faults) -> the real codecs ->
 // AttitudeBuffer -> SensorLoop with the Li batch calibrator (core::BatchLiCalibrator: collects
-// during the manoeuvre, solves the one-step fit, validates on held-out samples, applies)
+// during the manoeuvre, solves the one-step fit, validates on held-out samples, applies; or, with
+// --calibrator vector-ekf, the online vector calibration filter, core::VectorCalibrator)
 // -> DIR/records.csv. The calibration is written to DIR/cal.json. The before/after table is over
 // the survey lines after the calibration was applied: "before" is the raw reading (|m|, and m
 // rotated by R_bn^T), "after" the loop's output, "floor" the TRUE parameters applied to the same
@@ -21,6 +22,7 @@
 #include "commands.hpp"
 #include "magvec/core/batch_li_calibrator.hpp"
 #include "magvec/core/compensator.hpp"
+#include "magvec/core/vector_calibrator.hpp"
 #include "magvec/host/hil/calibrators.hpp"
 #include "magvec/host/hil/csv_record_sink.hpp"
 #include "magvec/host/hil/hil_session.hpp"
@@ -31,11 +33,12 @@ namespace magvec::host::cli {
 namespace {
 
 using LiCal = hil::LiCalibrator;
-using Session = hil::HilSession<LiCal>;
+using VecCal = hil::VectorLoopCalibrator;
 
 struct DemoOptions {
   std::string out_dir;
   std::uint64_t seed = 1;
+  std::string calibrator = "li";
   double noise_nT = 0.3;
   double ins_noise_deg = 0.015;
   double dropout_rate = 0.002;
@@ -45,6 +48,7 @@ struct DemoOptions {
 
 // Forwards every record to the CSV sink and scores the calibrated survey-line records against the
 // simulation truth (the session's current simulated sample and the attitude the loop used).
+template <typename Session>
 class ScoringSink final : public hal::RecordSink {
  public:
   ScoringSink(hil::CsvRecordSink& csv, const drivers::sim::ScenarioConfig& sc)
@@ -163,57 +167,13 @@ void write_cal(const std::string& path, const LiCal& cal, double validation_rms_
   write_calibration_file(path, f);
 }
 
-void run(const DemoOptions& o) {
-  namespace fs = std::filesystem;
-  fs::create_directories(o.out_dir);
-  const std::string records_path = (fs::path(o.out_dir) / "records.csv").string();
-  const std::string cal_path = (fs::path(o.out_dir) / "cal.json").string();
-
-  drivers::sim::ScenarioConfig sc = drivers::sim::scenario_survey();
-  sc.mag_noise_nT = o.noise_nT;
-  sc.ins_noise_deg = o.ins_noise_deg;
-  sc.dropout_probability = o.dropout_rate;
-  drivers::sim::Simulator sim(sc, o.seed);
-  drivers::sim::SimRigConfig rc;
-  rc.link = drivers::sim::MagLink::kSpi;
-  rc.adc.transfer.nT_per_volt = {1e5, 1e5, 1e5};  // 100 uT/V at gain 1: 0.014 nT per code
-  rc.adc.faults.crc_error_probability = o.crc_rate;
-  rc.ins.faults.corrupt_probability = o.ins_corrupt_rate;
-  rc.adc.seed = o.seed ^ 0xA1;
-  rc.ins.seed = o.seed ^ 0xC3;
-  hil::HilConfig hc;
-  // The simulated noise is not told to the loop: the calibration estimates it, as in the field.
-  hc.loop.noise_nT = std::numeric_limits<double>::quiet_NaN();
-  hc.loop.attitude_noise_deg = std::numeric_limits<double>::quiet_NaN();
-  const hil::CalibratorSpec spec;
-
-  hil::CsvRecordSink csv(records_path, {std::string("magvec ") + kVersion + " demo: survey seed " +
-                                        std::to_string(o.seed) + ", li calibrator in the loop"});
-  ScoringSink sink(csv, sc);
-  auto cal = std::make_unique<LiCal>(hil::li_config(spec));
-  auto session = std::make_unique<Session>(sim, rc, *cal, sink, hc);
-  sink.attach(session.get());
-  if (const hal::Status s = session->init(); s != hal::Status::kOk)
-    throw std::runtime_error(std::string("device initialisation failed: ") + hal::to_string(s));
-  std::uint64_t applied_at = 0;
-  while (session->step()) {
-    sink.remember(session->rig().last());
-    if (applied_at == 0 && session->loop().cal_id() > 0) applied_at = session->counters().steps;
-  }
-  if (session->counters().sink_errors != 0)
-    throw std::runtime_error("writing " + records_path + " failed: " + csv.last_error());
-  csv.commit();
-
-  const auto& loop = session->loop();
+// The calibrator's part of the report: the calibration line, its noise figures, cal.json and the
+// recovered parameters against the truth. Throws when no calibration was applied.
+void report_calibration(const core::SensorLoop<double, LiCal>& loop, const LiCal& calr,
+                        const DemoOptions& o, const drivers::sim::ScenarioConfig& sc,
+                        std::uint64_t applied_at, const std::string& cal_path) {
+  const LiCal* cal = &calr;
   const auto& res = cal->last_result();
-  std::cout << "magvec demo: simulated survey (seed " << o.seed << "), " << sc.num_samples
-            << " samples at " << sc.rate_hz << " Hz: " << sc.survey.manoeuvre_s
-            << " s calibration manoeuvre (+-30 deg pitch/roll, 3 heading turns) + 4 survey lines\n"
-            << "  pipeline: simulated ADS131M04 (SPI) + SBG INS (CAN) -> real codecs -> "
-               "AttitudeBuffer -> SensorLoop + Li one-step calibrator (in the loop)\n"
-            << "  noise: magnetometer " << o.noise_nT << " nT/axis, INS " << o.ins_noise_deg
-            << " deg/angle; faults: ADC CRC " << o.crc_rate << ", dropouts " << o.dropout_rate
-            << ", INS corrupt frames " << o.ins_corrupt_rate << "\n\n";
   std::cout << "Calibration: state " << core::cal_state_name(loop.state()) << ", cal_id "
             << loop.cal_id();
   if (applied_at > 0)
@@ -264,6 +224,157 @@ void run(const DemoOptions& o) {
   for (int k = 0; k < 3; ++k)
     row(std::string("h_n ") + "ENU"[k] + " nT", sc.h_n_nT(k), res.h_n_nT(k), res.h_n_sigma_nT(k),
         2);
+}
+
+void report_calibration(const core::SensorLoop<double, VecCal>& loop, const VecCal& cal,
+                        const DemoOptions& o, const drivers::sim::ScenarioConfig& sc,
+                        std::uint64_t applied_at, const std::string& cal_path) {
+  const VecCal::Diagnostics dg = cal.diagnostics();
+  std::cout << "Calibration: state " << core::cal_state_name(loop.state()) << ", cal_id "
+            << loop.cal_id();
+  if (applied_at > 0)
+    std::cout << ", applied at t = " << fixed(static_cast<double>(applied_at) / sc.rate_hz, 2)
+              << " s";
+  std::cout << "; vector-ekf: filter updates " << dg.filter_counters.updates << ", gated "
+            << dg.counts.gated << ", resets " << dg.filter_counters.resets
+            << "; validation intensity RMS " << fixed(loop.last_validation_rms_nT(), 3) << " nT\n";
+  if (dg.noise_known && dg.noise.estimated) {
+    const auto& n = dg.noise;
+    std::cout << "  noise estimated from the data: magnetometer " << fixed(n.mag_nT, 3) << " +- "
+              << fixed(n.mag_sigma_nT, 3) << " nT/axis (simulated " << o.noise_nT << "), INS "
+              << fixed(n.attitude_deg, 4) << " +- " << fixed(n.attitude_sigma_deg, 4)
+              << " deg/angle (simulated " << o.ins_noise_deg << ")\n";
+  }
+  if (loop.state() != core::CalState::kApplied) {
+    std::string why = std::string(core::cal_state_name(loop.state()));
+    if (loop.state() == core::CalState::kFailed) {
+      why += std::string(", ") + core::cal_failure_name(loop.failure());
+      if (loop.failure() == core::CalFailure::kSolverRejected)
+        why += std::string(" ") + core::vec_cal_code_name(loop.solver_code());
+    }
+    throw std::runtime_error("the in-loop calibration did not apply (state " + why + ")");
+  }
+  // The applied candidate is the filter's model at the solve; the filter paused there (the loop
+  // stops feeding it), so its covariance is the candidate's.
+  const core::SensorModel<double>& model = loop.active_model();
+  const core::VfSigmas<double>& sg = dg.sigmas;
+  const double deg = 180.0 / core::kPi<double>;
+  CalibrationFile file;
+  file.model = model;
+  file.h_n_nT = dg.h_n_nT;
+  const auto v3 = [](const core::Vec3<double>& v, double k) {
+    return std::vector<double>{v(0) * k, v(1) * k, v(2) * k};
+  };
+  file.sigma["o_nT"] = v3(sg.o_nT, 1.0);
+  file.sigma["Rm_body_deg"] = v3(sg.rm_rad, deg);
+  file.sigma["h_n_nT"] = v3(sg.h_n_nT, 1.0);
+  file.time_offset_s = 0;  // the filter's estimate is reported, not applied by the pipeline
+  file.quality.verdict = "ok";
+  file.quality.reason =
+      "online vector calibration filter in the sensor loop; validated on held-out samples (RMS " +
+      fixed(loop.last_validation_rms_nT(), 3) + " nT)";
+  file.quality.extra["time_offset_estimate_ms"] = dg.time_offset_s * 1e3;
+  file.quality.extra["time_offset_sigma_ms"] = sg.dt_s * 1e3;
+  file.output =
+      OutputQuality{loop.active_aligned(), loop.active_sigma_f_nT(), loop.active_sigma_enu_nT()};
+  const auto& n = dg.noise;
+  file.noise.mag_nT = n.mag_nT;
+  file.noise.mag_sigma_nT = n.mag_sigma_nT;
+  file.noise.mag_estimated = n.estimated;
+  file.noise.ins_deg = n.attitude_deg;
+  file.noise.ins_sigma_deg = n.attitude_sigma_deg;
+  file.noise.ins_estimated = n.estimated;
+  file.counts.samples = dg.counts.seen;
+  file.counts.used = dg.filter_counters.updates;
+  file.counts.skipped_nonfinite = dg.counts.nonfinite;
+  file.provenance.input = "magvec demo: simulated survey, seed " + std::to_string(o.seed);
+  file.provenance.method = "vector_ekf_in_loop";
+  file.provenance.magvec_version = kVersion;
+  file.provenance.created_utc = utc_now_iso8601();
+  write_calibration_file(cal_path, file);
+
+  // Recovered parameters vs truth (the filter's 1-sigmas are of W, o and a body-frame rotation,
+  // not of the Li angles: the offsets' are shown, the others are in cal.json's sigma).
+  core::LiParams<double> truth, got;
+  core::to_li(sc.truth, &truth);
+  if (core::to_li(model, &got) != core::ConversionStatus::kOk)
+    throw std::runtime_error("the applied calibration is not in Li form");
+  std::cout << "\nParameter          truth       recovered    1-sigma\n";
+  const auto row = [](const std::string& name, double t, double v, double s, int d) {
+    std::cout << "  " << name << std::string(name.size() < 10 ? 10 - name.size() : 0, ' ')
+              << num(t, d) << " " << num(v, d) << " " << num(s, d) << "\n";
+  };
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  const char* ax[3] = {"x", "y", "z"};
+  for (int k = 0; k < 3; ++k)
+    row(std::string("Ks") + ax[k], truth.ks(k), got.ks(k), nan, 6);
+  for (int k = 0; k < 3; ++k)
+    row("O" + std::to_string(k + 1) + " deg", truth.o_rad(k) * deg, got.o_rad(k) * deg, nan, 5);
+  for (int k = 0; k < 3; ++k)
+    row(std::string("Kof") + ax[k] + " nT", truth.kof(k), got.kof(k), sg.o_nT(k), 3);
+  const char* rmn[3] = {"am", "bm", "gm"};
+  for (int k = 0; k < 3; ++k)
+    row(std::string(rmn[k]) + " deg", truth.rm_rad(k) * deg, got.rm_rad(k) * deg, nan, 5);
+  for (int k = 0; k < 3; ++k)
+    row(std::string("h_n ") + "ENU"[k] + " nT", sc.h_n_nT(k), dg.h_n_nT(k), sg.h_n_nT(k), 2);
+  std::cout << "  time offset " << fixed(dg.time_offset_s * 1e3, 3) << " +- "
+            << fixed(sg.dt_s * 1e3, 3) << " ms (simulated 0; estimated, not applied)\n";
+}
+
+template <typename Cal>
+void run_with(const DemoOptions& o, std::unique_ptr<Cal> cal) {
+  using Session = hil::HilSession<Cal>;
+  namespace fs = std::filesystem;
+  fs::create_directories(o.out_dir);
+  const std::string records_path = (fs::path(o.out_dir) / "records.csv").string();
+  const std::string cal_path = (fs::path(o.out_dir) / "cal.json").string();
+
+  drivers::sim::ScenarioConfig sc = drivers::sim::scenario_survey();
+  sc.mag_noise_nT = o.noise_nT;
+  sc.ins_noise_deg = o.ins_noise_deg;
+  sc.dropout_probability = o.dropout_rate;
+  drivers::sim::Simulator sim(sc, o.seed);
+  drivers::sim::SimRigConfig rc;
+  rc.link = drivers::sim::MagLink::kSpi;
+  rc.adc.transfer.nT_per_volt = {1e5, 1e5, 1e5};  // 100 uT/V at gain 1: 0.014 nT per code
+  rc.adc.faults.crc_error_probability = o.crc_rate;
+  rc.ins.faults.corrupt_probability = o.ins_corrupt_rate;
+  rc.adc.seed = o.seed ^ 0xA1;
+  rc.ins.seed = o.seed ^ 0xC3;
+  hil::HilConfig hc;
+  // The simulated noise is not told to the loop: the calibration estimates it, as in the field.
+  hc.loop.noise_nT = std::numeric_limits<double>::quiet_NaN();
+  hc.loop.attitude_noise_deg = std::numeric_limits<double>::quiet_NaN();
+  hil::CsvRecordSink csv(
+      records_path, {std::string("magvec ") + kVersion + " demo: survey seed " +
+                     std::to_string(o.seed) + ", " + o.calibrator + " calibrator in the loop"});
+  ScoringSink<Session> sink(csv, sc);
+  auto session = std::make_unique<Session>(sim, rc, *cal, sink, hc);
+  sink.attach(session.get());
+  if (const hal::Status s = session->init(); s != hal::Status::kOk)
+    throw std::runtime_error(std::string("device initialisation failed: ") + hal::to_string(s));
+  std::uint64_t applied_at = 0;
+  while (session->step()) {
+    sink.remember(session->rig().last());
+    if (applied_at == 0 && session->loop().cal_id() > 0) applied_at = session->counters().steps;
+  }
+  if (session->counters().sink_errors != 0)
+    throw std::runtime_error("writing " + records_path + " failed: " + csv.last_error());
+  csv.commit();
+
+  const auto& loop = session->loop();
+  std::cout << "magvec demo: simulated survey (seed " << o.seed << "), " << sc.num_samples
+            << " samples at " << sc.rate_hz << " Hz: " << sc.survey.manoeuvre_s
+            << " s calibration manoeuvre (+-30 deg pitch/roll, 3 heading turns) + 4 survey lines\n"
+            << "  pipeline: simulated ADS131M04 (SPI) + SBG INS (CAN) -> real codecs -> "
+               "AttitudeBuffer -> SensorLoop + "
+            << (o.calibrator == "li" ? "Li one-step calibrator"
+                                     : "online vector calibration filter")
+            << " (in the loop)\n"
+            << "  noise: magnetometer " << o.noise_nT << " nT/axis, INS " << o.ins_noise_deg
+            << " deg/angle; faults: ADC CRC " << o.crc_rate << ", dropouts " << o.dropout_rate
+            << ", INS corrupt frames " << o.ins_corrupt_rate << "\n\n";
+  report_calibration(loop, *cal, o, sc, applied_at, cal_path);
 
   std::cout << "\nSurvey lines after the calibration was applied: " << sink.f_after.count()
             << " records (turns, dropouts, device errors, no-attitude records excluded)\n"
@@ -300,6 +411,16 @@ void run(const DemoOptions& o) {
             << " and the calibration to " << cal_path << "\n";
 }
 
+void run(const DemoOptions& o) {
+  // The simulated noise is not told to the calibrator either: default spec (estimated).
+  hil::CalibratorSpec spec;
+  spec.mode = o.calibrator;
+  if (o.calibrator == "li") return run_with(o, std::make_unique<LiCal>(hil::li_config(spec)));
+  if (o.calibrator == "vector-ekf")
+    return run_with(o, std::make_unique<VecCal>(hil::vector_config(spec)));
+  throw std::invalid_argument("demo: unknown calibrator '" + o.calibrator + "'");
+}
+
 }  // namespace
 
 void register_demo(CLI::App& app) {
@@ -307,10 +428,16 @@ void register_demo(CLI::App& app) {
   CLI::App* sub = app.add_subcommand(
       "demo",
       "Simulated survey through the real pipeline: devices -> codecs -> sensor loop with the Li "
-      "calibrator in the loop; writes records.csv and cal.json; before/after table");
+      "calibrator (or --calibrator vector-ekf) in the loop; writes records.csv and cal.json; "
+      "before/after table");
   sub->add_option("--out-dir", opt->out_dir, "Output directory (records.csv, cal.json)")
       ->required();
   sub->add_option("--seed", opt->seed, "Random seed")->capture_default_str();
+  sub->add_option("--calibrator", opt->calibrator,
+                  "In-loop calibrator: li (batch one-step fit) or vector-ekf (online vector "
+                  "calibration filter); neither is told the simulated noise")
+      ->check(CLI::IsMember({"li", "vector-ekf"}))
+      ->capture_default_str();
   sub->add_option("--noise-nT", opt->noise_nT, "Magnetometer noise SD per axis")
       ->check(CLI::Range(0.0, 1e6))
       ->capture_default_str();

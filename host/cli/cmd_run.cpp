@@ -10,6 +10,9 @@
 //   + misalignment fit for the INS
 //         alignment (--ekf-no-align: EKF model only, Rm = I; then h_n is NOT aligned to the INS and
 //         the summary says so);
+//   vector-ekf  core::VectorCalibrator: the online vector calibration filter (docs/equations.md
+//         E-VF: W, o, Rm, field, time offset, temperature coefficients from every sample; the noise
+//         is estimated first unless --noise-nT and --ins-noise-deg are both given);
 //   none  no calibration runs (flagged uncalibrated while cal_id = 0).
 #include <CLI/CLI.hpp>
 #include <cmath>
@@ -23,6 +26,7 @@
 #include "fault_spec.hpp"
 #include "magvec/core/batch_li_calibrator.hpp"
 #include "magvec/core/ekf_calibrator.hpp"
+#include "magvec/core/vector_calibrator.hpp"
 #include "magvec/host/hil/calibrators.hpp"
 #include "magvec/host/hil/csv_record_sink.hpp"
 #include "magvec/host/hil/hil_session.hpp"
@@ -52,6 +56,7 @@ struct RunOptions {
 
 using LiCal = host::hil::LiCalibrator;
 using EkfCal = host::hil::EkfLoopCalibrator;
+using VecCal = host::hil::VectorLoopCalibrator;
 
 // Calibrator-specific part of the summary.
 std::string solver_reason(const host::hil::NullCalibrator&, std::uint8_t) {
@@ -62,6 +67,9 @@ std::string solver_reason(const LiCal&, std::uint8_t code) {
 }
 std::string solver_reason(const EkfCal&, std::uint8_t code) {
   return core::ekf_cal_code_name(code);
+}
+std::string solver_reason(const VecCal&, std::uint8_t code) {
+  return core::vec_cal_code_name(code);
 }
 
 void describe(const host::hil::NullCalibrator&, std::ostream&) {}
@@ -95,6 +103,33 @@ void describe(const EkfCal& cal, std::ostream& os) {
     os << "  alignment: Rm [deg] " << (cal.alignment().rm_rad * deg).transpose() << ", h_n [nT] "
        << cal.alignment().h_n.transpose() << "\n";
   }
+}
+
+void describe(const VecCal& cal, std::ostream& os) {
+  const VecCal::Diagnostics d = cal.diagnostics();
+  const auto& c = d.counts;
+  const auto& fc = d.filter_counters;
+  os << "  vector-ekf calibrator: seen " << c.seen << ", rejected non-finite " << c.nonfinite
+     << ", no attitude " << c.no_attitude << ", no reference " << c.no_reference << ", gated "
+     << c.gated << "; filter updates " << fc.updates << ", resets " << fc.resets
+     << ", starts tried " << fc.init_attempts << " (refused " << fc.init_failures << ")\n";
+  if (d.noise_known) {
+    const auto& n = d.noise;
+    os << "  noise" << (n.estimated ? " estimated" : " given") << ": magnetometer " << n.mag_nT
+       << " +- " << n.mag_sigma_nT << " nT, INS " << n.attitude_deg << " +- "
+       << n.attitude_sigma_deg << " deg\n";
+  }
+  if (!d.initialised) return;
+  const double deg = 180.0 / core::kPi<double>;
+  core::LiParams<double> li;
+  if (core::to_li(d.model, &li) == core::ConversionStatus::kOk) {
+    os << "    Ks " << li.ks.transpose() << ", O [deg] " << (li.o_rad * deg).transpose()
+       << ", Kof [nT] " << li.kof.transpose() << ", Rm [deg] " << (li.rm_rad * deg).transpose()
+       << ", h_n [nT] " << d.h_n_nT.transpose() << "\n";
+  }
+  os << "    time offset " << d.time_offset_s * 1e3 << " +- " << d.sigmas.dt_s * 1e3
+     << " ms, heading " << (d.heading_held ? "held" : "estimated")
+     << ", parameter 1-sigma / readiness limit " << d.worst_sigma_ratio << "\n";
 }
 
 template <typename Calibrator>
@@ -227,9 +262,9 @@ void register_run(CLI::App& app) {
       ->check(CLI::IsMember({"spi", "serial"}))
       ->capture_default_str();
   sub->add_option("--calibrator", opt->calibrator,
-                  "In-loop calibrator: li (batch one-step), ekf (online EKF + misalignment fit), "
-                  "none")
-      ->check(CLI::IsMember({"none", "li", "ekf"}))
+                  "In-loop calibrator: li (batch one-step), ekf (online scalar EKF + misalignment "
+                  "fit), vector-ekf (online vector calibration filter), none")
+      ->check(CLI::IsMember({"none", "li", "ekf", "vector-ekf"}))
       ->capture_default_str();
   sub->add_flag("--ekf-no-align", opt->ekf_no_align,
                 "ekf: skip the misalignment fit (Rm = I; h_n not aligned to the INS)");

@@ -325,6 +325,19 @@ Config parse_config(const std::string& text, const std::string& source) {
   m.array("channel_of_axis", &mc.adc.channel_of_axis, as_u8(3));
   m.array("gain_code", &mc.adc.gain_code, as_u8(7));
   m.integer("stuck_count", &mc.adc.stuck_count, 0, 1'000'000);
+  // The fluxgate's temperature on ADC channel 3 (ads131_fluxgate.hpp): T = offset + V * scale.
+  auto& tc = mc.adc.temperature;
+  m.boolean("temperature_channel", &tc.enabled);
+  m.number("temperature_degC_per_volt", &tc.degC_per_volt, -1e6, 1e6);
+  m.number("temperature_offset_degC", &tc.offset_degC, -1e4, 1e4);
+  m.number("temperature_min_degC", &tc.min_degC, -273.15, 1000);
+  m.number("temperature_max_degC", &tc.max_degC, -273.15, 1000);
+  if (const drivers::Ads131ConfigError e = drivers::check_config(mc.adc);
+      e != drivers::Ads131ConfigError::kNone) {
+    m.fail(e == drivers::Ads131ConfigError::kAxisOnTemperatureChannel ? "channel_of_axis"
+                                                                      : "temperature_channel",
+           drivers::to_string(e));
+  }
   m.check_unknown();
 
   Table ins = dev.sub("ins");
@@ -391,7 +404,7 @@ Config parse_config(const std::string& text, const std::string& source) {
 
   Table cal = top.sub("calibration");
   auto& cc = c.calibration;
-  cal.one_of("mode", &cc.mode, {"li", "ekf", "none"});
+  cal.one_of("mode", &cc.mode, {"li", "ekf", "vector-ekf", "none"});
   cal.boolean("start_on_boot", &cc.start_on_boot);
   cal.boolean("auto_accept", &cc.auto_accept);
   cal.number_or_nan("noise_nT", &cc.noise_nT, 1e-6, 1e5);

@@ -15,6 +15,7 @@ namespace {
 
 using LiCal = hil::LiCalibrator;
 using EkfCal = hil::EkfLoopCalibrator;
+using VecCal = hil::VectorLoopCalibrator;
 
 std::string solver_reason(const hil::NullCalibrator&, std::uint8_t) {
   return "none";
@@ -24,6 +25,9 @@ std::string solver_reason(const LiCal&, std::uint8_t code) {
 }
 std::string solver_reason(const EkfCal&, std::uint8_t code) {
   return core::ekf_cal_code_name(code);
+}
+std::string solver_reason(const VecCal&, std::uint8_t code) {
+  return core::vec_cal_code_name(code);
 }
 
 // What each calibrator has and needs before a solve can be tried (calibration_guidance.hpp).
@@ -71,6 +75,21 @@ void guidance_needs(const EkfCal& c, core::GuidanceInput<double>* in) {
     in->other_fraction =
         kStartupShare + (1 - kStartupShare) * std::clamp(std::min(pu, ps), 0.0, 1.0);
   }
+}
+
+void guidance_needs(const VecCal& c, core::GuidanceInput<double>* in) {
+  // No coverage rule (the filter decides by its covariance). The samples are the start-up set
+  // (the noise estimate's, then the filter's start); afterwards progress is the calibrator's
+  // (the parameter 1-sigmas against their readiness limit).
+  const VecCal::Diagnostics d = c.diagnostics();
+  in->cells_needed = 0;
+  in->need_attitude = true;
+  in->need_reference = d.needs_reference;
+  in->samples_needed = static_cast<std::size_t>(std::max(d.samples_needed, 1));
+  in->samples = d.initialised
+                    ? in->samples_needed
+                    : static_cast<std::size_t>(d.noise_known ? d.startup_samples : d.noise_samples);
+  in->other_fraction = c.progress();
 }
 
 // Readings the residual average spans (exponential, weight 1/kResidualSpan per reading).

@@ -304,6 +304,77 @@ TEST_F(Cli, DemoWithFieldNoiseCalibratesWithDefaultsAndReportsHonestSigmas) {
   EXPECT_GT(with_sigma, 30000u);
 }
 
+// The E/N/U RMS errors after calibration that the demo scores against the simulation TRUTH.
+std::vector<double> demo_enu_errors(const std::string& output) {
+  std::vector<double> err_after;
+  for (const char* name : {"  East ", "  North", "  Up   "}) {
+    const auto pos = output.find(name);
+    if (pos == std::string::npos) return {};
+    std::istringstream row(output.substr(pos + 7, 120));
+    double sd_before = 0, sd_after = 0, rms_before = 0, rms_after = 0;
+    row >> sd_before >> sd_after >> rms_before >> rms_after;
+    err_after.push_back(rms_after);
+  }
+  return err_after;
+}
+
+// The online vector calibration filter as the demo's calibrator, with default options (the noise
+// is not told to it: it estimates it): it applies a calibration, and its E/N/U error against the
+// TRUE field on the survey lines is within 1.2x of the Li calibrator's on the same data.
+// KNOWN GAP (expected failure, tests/host/cli/CMakeLists.txt): measured, the calibration applies
+// and its E/N/U error equals the Li calibrator's (33.40 vs 33.41 nT, ratio 1.000), but the noise
+// estimate from the 48-sample start-up set is 3.80 nT against the simulated 3 nT (bound 25 %).
+TEST_F(Cli, DemoWithTheVectorEkfCalibratorMatchesTheLiCalibratorAgainstTheTruth) {
+  const std::string noise = "--noise-nT 3 --ins-noise-deg 0.05 --seed 2 ";
+  const Result li = run("demo " + noise + "--out-dir " + file("li"));
+  ASSERT_EQ(li.status, 0) << li.output;
+  const Result vec = run("demo --calibrator vector-ekf " + noise + "--out-dir " + file("vec"));
+  ASSERT_EQ(vec.status, 0) << vec.output;
+  EXPECT_NE(vec.output.find("Calibration: state applied, cal_id 1"), std::string::npos)
+      << vec.output;
+  EXPECT_NE(vec.output.find("online vector calibration filter (in the loop)"), std::string::npos);
+  const std::vector<double> e_li = demo_enu_errors(li.output);
+  const std::vector<double> e_vec = demo_enu_errors(vec.output);
+  ASSERT_EQ(e_li.size(), 3u) << li.output;
+  ASSERT_EQ(e_vec.size(), 3u) << vec.output;
+  double ss_li = 0, ss_vec = 0;
+  for (int k = 0; k < 3; ++k) {
+    const auto kk = static_cast<std::size_t>(k);
+    EXPECT_GT(e_vec[kk], 0.0);
+    EXPECT_LE(e_vec[kk], 1.2 * e_li[kk]) << "ENU"[k] << "\n" << vec.output << li.output;
+    ss_li += e_li[kk] * e_li[kk];
+    ss_vec += e_vec[kk] * e_vec[kk];
+  }
+  std::printf("E/N/U RMS error vs truth: vector-ekf %.2f nT, li %.2f nT (ratio %.3f)\n",
+              std::sqrt(ss_vec / 3), std::sqrt(ss_li / 3), std::sqrt(ss_vec / ss_li));
+  // The calibration file it wrote: aligned, the noise estimated near the simulated figures, the
+  // model near the truth.
+  const magvec::host::CalibrationFile cal =
+      magvec::host::read_calibration_file((dir_ / "vec" / "cal.json").string());
+  ASSERT_TRUE(cal.output.has_value());
+  EXPECT_TRUE(cal.output->aligned);
+  EXPECT_TRUE(cal.noise.mag_estimated);
+  EXPECT_NEAR(cal.noise.mag_nT, 3.0, 0.75);
+  EXPECT_NEAR(cal.noise.ins_deg, 0.05, 0.0125);
+  const magvec::core::SensorModel<double> truth = magvec::drivers::sim::scenario_survey().truth;
+  EXPECT_LT(cal.model.rm.angularDistance(truth.rm), 0.05 * magvec::core::kPi<double> / 180);
+}
+
+// KNOWN GAP (expected failure, tests/host/cli/CMakeLists.txt): measured, after 90 s of the survey
+// scenario (0.3 nT, 0.015 deg) the calibrator is still collecting: the largest parameter 1-sigma is
+// 1.6x its readiness limit (vector_calibrator.hpp: 0.5 of the per-sample noise, here 0.14 nT for
+// an offset), progress 0.45. A per-parameter limit at the noise of a quiet sensor is stricter than
+// what the output needs; an output-error criterion is the likely fix.
+TEST_F(Cli, RunWithTheVectorEkfCalibratorCalibratesWithDefaults) {
+  const Result r = run("run --sim survey --duration 90 --seed 3 --calibrator vector-ekf --out " +
+                       file("vec.csv"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  EXPECT_NE(r.output.find("calibration: state applied"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("vector-ekf calibrator: seen"), std::string::npos) << r.output;
+  EXPECT_NE(r.output.find("noise estimated"), std::string::npos) << r.output;
+  EXPECT_NE(run("demo --calibrator bogus --out-dir " + file("x")).status, 0);
+}
+
 }  // namespace
 
 namespace {

@@ -145,6 +145,57 @@ TEST(DaemonConfigSim, FaultsUseTheRunSyntaxAndAreCheckedAtLoad) {
   EXPECT_EQ(error_of("[sim]\nfaults = 1\n"), "cfg.toml: sim.faults: expected a string");
 }
 
+// calibration.mode names the calibrator of the one factory (host/hil/calibrators.hpp); anything
+// else is refused with the key and the list of modes.
+TEST(DaemonConfigCalibration, ModeIsOneOfTheCalibrators) {
+  EXPECT_EQ(parse_config("", "cfg.toml").calibration.mode, "li");
+  for (const char* mode : {"li", "ekf", "vector-ekf", "none"}) {
+    SCOPED_TRACE(mode);
+    EXPECT_EQ(parse_config(std::string("[calibration]\nmode = \"") + mode + "\"\n", "cfg.toml")
+                  .calibration.mode,
+              mode);
+  }
+  EXPECT_EQ(error_of("[calibration]\nmode = \"vector_ekf\"\n"),
+            "cfg.toml: calibration.mode: 'vector_ekf' is not one of ekf, li, none, vector-ekf");
+  EXPECT_EQ(error_of("[calibration]\nmode = 3\n"), "cfg.toml: calibration.mode: expected a string");
+}
+
+// The fluxgate's temperature channel (ADC channel 3): off by default; its transfer and range are
+// read; an axis on channel 3 while it is the temperature channel, a zero scale or an empty range
+// are refused at load with the key named.
+TEST(DaemonConfigMagnetometer, TemperatureChannelIsReadAndChecked) {
+  const auto off = parse_config("", "cfg.toml").magnetometer.adc.temperature;
+  EXPECT_FALSE(off.enabled);
+  const std::string section = "[devices.magnetometer]\n";
+  const auto on = parse_config(section +
+                                   "temperature_channel = true\n"
+                                   "temperature_degC_per_volt = 50.0\n"
+                                   "temperature_offset_degC = -10.0\n"
+                                   "temperature_min_degC = -20.0\n"
+                                   "temperature_max_degC = 60.0\n",
+                               "cfg.toml")
+                      .magnetometer.adc.temperature;
+  EXPECT_TRUE(on.enabled);
+  EXPECT_EQ(on.degC_per_volt, 50.0);
+  EXPECT_EQ(on.offset_degC, -10.0);
+  EXPECT_EQ(on.min_degC, -20.0);
+  EXPECT_EQ(on.max_degC, 60.0);
+  EXPECT_EQ(error_of(section + "temperature_channel = true\nchannel_of_axis = [0, 3, 2]\n"),
+            "cfg.toml: devices.magnetometer.channel_of_axis: an axis uses channel 3, the "
+            "temperature channel");
+  EXPECT_EQ(error_of(section + "temperature_channel = true\ntemperature_degC_per_volt = 0.0\n"),
+            "cfg.toml: devices.magnetometer.temperature_channel: temperature scale (degC per "
+            "volt) must be finite and non-zero, offset finite");
+  EXPECT_EQ(error_of(section + "temperature_channel = true\ntemperature_min_degC = 50.0\n"
+                               "temperature_max_degC = 50.0\n"),
+            "cfg.toml: devices.magnetometer.temperature_channel: temperature range must be finite "
+            "with min < max");
+  // Disabled, channel 3 may carry an axis as before.
+  EXPECT_EQ(parse_config(section + "channel_of_axis = [0, 3, 2]\n", "cfg.toml")
+                .magnetometer.adc.channel_of_axis[1],
+            3);
+}
+
 // The batch has its own channel: a reader decodes a channel as one type.
 TEST(DaemonConfigLcm, RawBatchChannelDiffersFromTheSampleChannel) {
   EXPECT_EQ(parse_config("", "cfg.toml").lcm.channels.raw_mag_batch, "MAGVEC_RAW_MAG_BATCH");

@@ -80,7 +80,7 @@ struct ScalarConfig {
 };
 
 struct CalibrationConfig {
-  std::string mode{"li"};  // li | ekf | none
+  std::string mode{"li"};  // li | ekf | vector-ekf | none
   bool start_on_boot{true};
   bool auto_accept{true};  // persist a calibration as soon as the loop validated and applied it
   // Known noise figures (magnetometer per axis, INS per angle, 1-sigma); nan: the calibrator

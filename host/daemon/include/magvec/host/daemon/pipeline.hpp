@@ -1,9 +1,9 @@
 // magvecd's Pipeline: raw input events -> hil::LoopCore (AttitudeBuffer + SensorLoop) -> records,
-// with the calibrator chosen at run time from the configuration (li | ekf | none). It consumes
-// only raw events (magnetometer samples + scalar reference, INS attitude samples) and the pipeline
-// events (start calibration, install a calibration); it has no clock and no I/O besides the record
-// sink, so the same events in the same order give bit-identical records. The daemon and `magvec
-// replay` both drive it.
+// with the calibrator chosen at run time from the configuration (li | ekf | vector-ekf | none). It
+// consumes only raw events (magnetometer samples + scalar reference, INS attitude samples) and the
+// pipeline events (start calibration, install a calibration); it has no clock and no I/O besides
+// the record sink, so the same events in the same order give bit-identical records. The daemon and
+// `magvec replay` both drive it.
 #pragma once
 
 #include <cstdint>
@@ -25,7 +25,7 @@
 namespace magvec::host::daemon {
 
 struct CalibrationStatus {
-  std::string calibrator;  // li | ekf | none
+  std::string calibrator;  // li | ekf | vector-ekf | none
   core::CalState state{core::CalState::kIdle};
   core::CalFailure failure{core::CalFailure::kNone};
   std::string solver_reason;  // calibrator verdict when the solver refused ("" otherwise)

@@ -4,6 +4,9 @@
 //   li    core::BatchLiCalibrator: motion-decimated store, Li et al. one-step fit
 //         (docs/equations.md E-Li);
 //   ekf   core::EkfCalibrator: Ge et al. scalar EKF + misalignment fit (docs/equations.md E-Ge);
+//   vector-ekf  VectorLoopCalibrator (core::VectorCalibrator, compiled once): the online vector
+//         calibration filter (W, o, Rm, field, time offset, temperature coefficients from every
+//         sample; docs/equations.md E-VF);
 //   none  NullCalibrator: outputs with the active calibration, never calibrates.
 #pragma once
 
@@ -17,7 +20,10 @@
 
 #include "magvec/core/batch_li_calibrator.hpp"
 #include "magvec/core/ekf_calibrator.hpp"
+#include "magvec/core/frames.hpp"
+#include "magvec/core/vector_calibrator.hpp"
 #include "magvec/host/hil/loop_core.hpp"
+#include "magvec/host/hil/vector_loop_calibrator.hpp"
 
 namespace magvec::host::hil {
 
@@ -25,19 +31,23 @@ using LiCalibrator = core::BatchLiCalibrator<double, 512>;
 using EkfLoopCalibrator = core::EkfCalibrator<double, 256>;
 
 // Noise figures: NaN (the default) means not known, so the calibrator estimates them from its
-// data (a survey team rarely knows them); a given figure overrides. li estimates both unless both
-// are given.
+// data (a survey team rarely knows them); a given figure overrides. li and vector-ekf estimate both
+// unless both are given.
 struct CalibratorSpec {
-  std::string mode{"li"};                                     // li | ekf | none
+  std::string mode{"li"};                                     // li | ekf | vector-ekf | none
   double noise_nT{std::numeric_limits<double>::quiet_NaN()};  // magnetometer noise 1-sigma
-  double attitude_noise_deg{std::numeric_limits<double>::quiet_NaN()};  // INS attitude (li)
+  // INS attitude noise 1-sigma (li, vector-ekf)
+  double attitude_noise_deg{std::numeric_limits<double>::quiet_NaN()};
   std::size_t li_min_samples{0};  // li: samples before a solve (0: the calibrator's default)
   bool ekf_align{true};           // ekf: fit the misalignment after the filter
 };
 
 inline bool is_calibrator_mode(const std::string& mode) {
-  return mode == "li" || mode == "ekf" || mode == "none";
+  return mode == "li" || mode == "ekf" || mode == "vector-ekf" || mode == "none";
 }
+
+// The modes, for help texts and error messages.
+inline constexpr const char* kCalibratorModes = "li, ekf, vector-ekf or none";
 
 // True for calibrators that calibrate (HilConfig::start_calibration).
 template <typename Calibrator>
@@ -62,14 +72,26 @@ inline core::EkfCalibratorConfig<double> ekf_config(const CalibratorSpec& spec) 
   return ec;
 }
 
+inline core::VectorCalibratorConfig<double> vector_config(const CalibratorSpec& spec) {
+  core::VectorCalibratorConfig<double> vc;
+  vc.estimate_noise = !(std::isfinite(spec.noise_nT) && std::isfinite(spec.attitude_noise_deg));
+  // Given figures (or the defaults) are the noise fit's starting values.
+  if (std::isfinite(spec.noise_nT)) vc.filter.mag_noise_nT = spec.noise_nT;
+  if (std::isfinite(spec.attitude_noise_deg))
+    vc.filter.attitude_noise_rad = core::deg_to_rad(spec.attitude_noise_deg);
+  return vc;
+}
+
 // Constructs the calibrator of spec.mode and returns fn(std::unique_ptr<Calibrator>) (fn is a
 // generic callable; every branch must return the same type). Unknown mode: std::invalid_argument.
 template <typename Fn>
 auto with_calibrator(const CalibratorSpec& spec, Fn&& fn) {
   if (spec.mode == "li") return fn(std::make_unique<LiCalibrator>(li_config(spec)));
   if (spec.mode == "ekf") return fn(std::make_unique<EkfLoopCalibrator>(ekf_config(spec)));
+  if (spec.mode == "vector-ekf")
+    return fn(std::make_unique<VectorLoopCalibrator>(vector_config(spec)));
   if (spec.mode == "none") return fn(std::make_unique<NullCalibrator>());
-  throw std::invalid_argument("unknown calibrator '" + spec.mode + "' (li, ekf or none)");
+  throw std::invalid_argument("unknown calibrator '" + spec.mode + "' (" + kCalibratorModes + ")");
 }
 
 }  // namespace magvec::host::hil

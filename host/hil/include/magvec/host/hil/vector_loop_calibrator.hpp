@@ -1,0 +1,65 @@
+// VectorLoopCalibrator: the host's `vector-ekf` calibrator, core::VectorCalibrator<double>
+// (firmware/core/.../vector_calibrator.hpp, docs/equations.md E-VF) behind a compiled interface.
+//
+// Why a wrapper and not the core type itself: the 19-state filter's fixed-size Eigen code costs
+// minutes of compile time per translation unit that instantiates it, and magvec run, magvec demo
+// and magvecd each instantiate the sample pipeline for every calibrator mode. Here the filter is
+// instantiated once (vector_loop_calibrator.cpp); callers see a plain class whose members forward
+// to it, and a Diagnostics snapshot of plain values. The estimation is the core's, unchanged.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+
+#include "magvec/core/sensor_loop.hpp"
+#include "magvec/core/sensor_model.hpp"
+#include "magvec/core/types.hpp"
+#include "magvec/core/vector_calibrator.hpp"
+
+namespace magvec::host::hil {
+
+class VectorLoopCalibrator {
+ public:
+  using Impl = core::VectorCalibrator<double>;
+  using Config = core::VectorCalibratorConfig<double>;
+
+  explicit VectorLoopCalibrator(const Config& config);
+  VectorLoopCalibrator(const VectorLoopCalibrator& other);  // a copy solves the same (worker)
+  VectorLoopCalibrator& operator=(const VectorLoopCalibrator& other);
+  ~VectorLoopCalibrator();
+
+  // SensorLoop Calibrator contract (the extended add, sensor_loop.hpp).
+  void begin() noexcept;
+  core::CalibratorAdd add(const core::MagSample<double>& s,
+                          const core::Mat3<double>* r_bn) noexcept;
+  double progress() const noexcept;
+  bool ready() const noexcept;
+  core::CalibratorSolve solve(core::SensorModel<double>* out) const noexcept;
+
+  // What reports, status and guidance show of the calibrator and its filter.
+  struct Diagnostics {
+    core::VectorCalibratorCounts counts{};
+    core::VfCounters filter_counters{};
+    bool noise_known{false};
+    core::BatchNoise<double> noise{};
+    int noise_samples{0};        // kept for the noise estimate so far
+    int samples_needed{0};       // the start-up set's size
+    int startup_samples{0};      // the filter's start-up store so far
+    bool needs_reference{true};  // no constant reference configured: samples must carry F
+    bool initialised{false};
+    bool heading_held{true};
+    core::SensorModel<double> model{};  // valid when initialised
+    core::Vec3<double> h_n_nT = core::Vec3<double>::Zero();
+    double time_offset_s{0};
+    core::VfSigmas<double> sigmas{};
+    double worst_sigma_ratio{0};  // largest parameter 1-sigma over its readiness limit
+  };
+  Diagnostics diagnostics() const noexcept;
+
+  const Config& config() const noexcept;
+
+ private:
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace magvec::host::hil

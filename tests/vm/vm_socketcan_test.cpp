@@ -42,9 +42,11 @@ std::string can_interface() {
 
 std::vector<CanFilterSpec> sbg_filters() {
   const drivers::sbg::CanIds ids{};
+  // The simulated INS also sends its position (EKF_POS, EKF_ALTITUDE): every frame it sends passes.
   return {{ids.status_01, 0x7FF, false}, {ids.status_03, 0x7FF, false},
           {ids.ekf_info, 0x7FF, false},  {ids.ekf_quat, 0x7FF, false},
-          {ids.ekf_euler, 0x7FF, false}, {ids.ekf_orientation_acc, 0x7FF, false}};
+          {ids.ekf_euler, 0x7FF, false}, {ids.ekf_orientation_acc, 0x7FF, false},
+          {ids.ekf_pos, 0x7FF, false},   {ids.ekf_altitude, 0x7FF, false}};
 }
 
 std::unique_ptr<SocketCanBus> open_bus(std::vector<CanFilterSpec> filters,

@@ -335,12 +335,13 @@ class SensorLoop {
                         OutputRecord<Scalar>* rec) noexcept {
     switch (state_) {
       case CalState::kCollecting: {
-        CalibratorAdd a;
-        if constexpr (kTakesSample) {
-          a = calibrator_.add(s, r_bn);
-        } else {
-          a = calibrator_.add(s.m_nT, s.f_ref_nT, r_bn);
-        }
+        const CalibratorAdd a = [&]() noexcept {
+          if constexpr (kTakesSample) {
+            return calibrator_.add(s, r_bn);
+          } else {
+            return calibrator_.add(s.m_nT, s.f_ref_nT, r_bn);
+          }
+        }();
         if (a == CalibratorAdd::kUsed) ++health_.cal_used;
         if (a == CalibratorAdd::kGated) {
           ++health_.cal_gated;

@@ -382,8 +382,8 @@ class VectorCalibrationFilter {
     Vec3<Scalar> m;      // normalised reading
     Mat3<Scalar> r;      // R_bn
     Vec3<Scalar> omega;  // rad/s, n frame
-    Scalar f;            // normalised reference (NaN: none)
-    Scalar dtemp;        // T - T0 (0 without temperatures)
+    Scalar f{0};         // normalised reference (NaN: none)
+    Scalar dtemp{0};     // T - T0 (0 without temperatures)
   };
 
   Scalar scale_or_one() const noexcept { return scale_ > Scalar(0) ? scale_ : Scalar(1); }
@@ -556,7 +556,7 @@ class VectorCalibrationFilter {
     if (!cfg_.estimate_time_offset) held_[kDt] = true;
     if (!cfg_.estimate_temperature)
       for (int k = 0; k < 3; ++k)
-        held_[static_cast<std::size_t>(kTc0 + k)] = true;
+        held_[static_cast<std::size_t>(kTc0) + static_cast<std::size_t>(k)] = true;
     if (!tilt_released_) held_[kRmHeading] = true;
     // A held state must be uncorrelated so that a zero Jacobian column gives it exactly zero gain
     // (E-VF-7); removing a state's cross-covariances keeps P positive semi-definite.
@@ -656,7 +656,7 @@ class VectorCalibrationFilter {
     const int half = n_kept_ / 2;
     std::array<Vec3<Scalar>, static_cast<std::size_t>(kInitCapacity / 2 + 1)> m;
     std::array<Mat3<Scalar>, static_cast<std::size_t>(kInitCapacity / 2 + 1)> r;
-    std::array<Scalar, static_cast<std::size_t>(kInitCapacity / 2 + 1)> f;
+    std::array<Scalar, static_cast<std::size_t>(kInitCapacity / 2 + 1)> f{};
     for (int j = 0; j < half; ++j) {
       const int i = 2 * j + 1;
       const StoredSample<Scalar>& s = batch_.store()[static_cast<std::size_t>(i)];

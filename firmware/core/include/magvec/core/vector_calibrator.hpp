@@ -342,7 +342,7 @@ class VectorCalibrator {
     const int half = n_kept_ / 2;
     noise_batch_.reset();
     for (int j = 0; j < half; ++j) {
-      kept_[static_cast<std::size_t>(j)] = kept_[static_cast<std::size_t>(2 * j + 1)];
+      kept_[static_cast<std::size_t>(j)] = kept_[2 * static_cast<std::size_t>(j) + 1];
       const VfSample<Scalar>& v = kept_[static_cast<std::size_t>(j)];
       Scalar f = v.f_nT;
       if (!(std::isfinite(f) && f > Scalar(0))) f = cfg_.filter.reference_field_nT;

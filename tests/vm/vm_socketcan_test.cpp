@@ -40,13 +40,19 @@ std::string can_interface() {
   return vmtest::env("MAGVEC_TEST_CAN", "vcan0");
 }
 
-std::vector<CanFilterSpec> sbg_filters() {
+// The attitude messages magvecd subscribes to; with_position adds EKF_POS and EKF_ALTITUDE, which
+// the simulated INS also sends (every tenth epoch), for the tests that expect every frame it sends.
+std::vector<CanFilterSpec> sbg_filters(bool with_position = false) {
   const drivers::sbg::CanIds ids{};
-  // The simulated INS also sends its position (EKF_POS, EKF_ALTITUDE): every frame it sends passes.
-  return {{ids.status_01, 0x7FF, false}, {ids.status_03, 0x7FF, false},
-          {ids.ekf_info, 0x7FF, false},  {ids.ekf_quat, 0x7FF, false},
-          {ids.ekf_euler, 0x7FF, false}, {ids.ekf_orientation_acc, 0x7FF, false},
-          {ids.ekf_pos, 0x7FF, false},   {ids.ekf_altitude, 0x7FF, false}};
+  std::vector<CanFilterSpec> f = {
+      {ids.status_01, 0x7FF, false}, {ids.status_03, 0x7FF, false},
+      {ids.ekf_info, 0x7FF, false},  {ids.ekf_quat, 0x7FF, false},
+      {ids.ekf_euler, 0x7FF, false}, {ids.ekf_orientation_acc, 0x7FF, false}};
+  if (with_position) {
+    f.push_back({ids.ekf_pos, 0x7FF, false});
+    f.push_back({ids.ekf_altitude, 0x7FF, false});
+  }
+  return f;
 }
 
 std::unique_ptr<SocketCanBus> open_bus(std::vector<CanFilterSpec> filters,
@@ -100,7 +106,7 @@ hal::CanFrame frame(std::uint32_t id, std::uint8_t tag, bool extended = false) {
 }
 
 TEST(SocketCanVm, SimulatedInsFramesArriveIntactWithKernelTimestamps) {
-  auto rx = open_bus(sbg_filters());
+  auto rx = open_bus(sbg_filters(true));
   auto tx = open_bus({});
   ASSERT_TRUE(rx && tx);
   const auto frames = sim_ins_frames(400, 100.0);
@@ -123,7 +129,7 @@ TEST(SocketCanVm, SimulatedInsFramesArriveIntactWithKernelTimestamps) {
 }
 
 TEST(SocketCanVm, AttitudeSourceOverSocketCanMatchesDirectDecode) {
-  auto rx = open_bus(sbg_filters());
+  auto rx = open_bus(sbg_filters(true));
   auto tx = open_bus({});
   ASSERT_TRUE(rx && tx);
   const auto frames = sim_ins_frames(800, 100.0);
@@ -246,7 +252,7 @@ TEST(SocketCanVm, ErrorFramesAreReportedAsBusErrors) {
 
 TEST(SocketCanVm, BurstOf10000FramesAt1kHzWithoutLoss) {
   constexpr std::size_t kFrames = 10'000;
-  auto rx = open_bus(sbg_filters());
+  auto rx = open_bus(sbg_filters(true));
   auto tx = open_bus({});
   ASSERT_TRUE(rx && tx);
   auto frames = sim_ins_frames(kFrames, 250.0);
@@ -339,7 +345,7 @@ int can_receivers() {
 }
 
 TEST(SocketCanVm, CanplayerReplaysCandumpLogThroughDriver) {
-  auto rx = open_bus(sbg_filters());
+  auto rx = open_bus(sbg_filters(true));
   ASSERT_TRUE(rx);
   // A 2 s recording at 100 Hz as candump -L writes it, with unrelated traffic interleaved.
   auto frames = sim_ins_frames(800, 100.0);

@@ -47,17 +47,8 @@ bool julian_ok(const char* b, const char* e) noexcept {
 hal::Status G882LineDecoder::push(std::uint8_t byte, std::uint64_t t_us,
                                   hal::ScalarSample& out) noexcept {
   // A preamble inside a line restarts it: the partial line is lost, the new one recovered.
-  switch (framer_.push(static_cast<char>(byte), t_us, counters_)) {
-    case LineEvent::kNone:
-      return hal::Status::kNoData;
-    case LineEvent::kLine:
-      return finish_line(out);
-    case LineEvent::kRestarted:
-      return hal::Status::kMalformed;
-    case LineEvent::kOverflow:
-      return hal::Status::kOverflow;
-  }
-  return hal::Status::kNoData;
+  return line_status(framer_.push(static_cast<char>(byte), t_us, counters_),
+                     [&]() noexcept { return finish_line(out); });
 }
 
 hal::Status G882LineDecoder::finish_line(hal::ScalarSample& out) noexcept {

@@ -104,17 +104,8 @@ std::size_t format_fixed3(double v, std::span<char> out) noexcept {
 
 hal::Status AsciiLineDecoder::push(std::uint8_t byte, std::uint64_t t_us,
                                    hal::MagnetometerSample& out) noexcept {
-  switch (framer_.push(static_cast<char>(byte), t_us, counters_)) {
-    case LineEvent::kNone:
-      return hal::Status::kNoData;
-    case LineEvent::kLine:
-      return finish_line(out);
-    case LineEvent::kRestarted:
-      return hal::Status::kMalformed;
-    case LineEvent::kOverflow:
-      return hal::Status::kOverflow;
-  }
-  return hal::Status::kNoData;
+  return line_status(framer_.push(static_cast<char>(byte), t_us, counters_),
+                     [&]() noexcept { return finish_line(out); });
 }
 
 hal::Status AsciiLineDecoder::finish_line(hal::MagnetometerSample& out) noexcept {

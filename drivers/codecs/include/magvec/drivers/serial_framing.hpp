@@ -29,6 +29,23 @@ enum class LineEvent : std::uint8_t {
   kOverflow,   // the line exceeded kMaxLine bytes: skipped up to the next '\n'
 };
 
+// A line decoder's push() result for what its byte did: a finished line is parsed by `finish`
+// (the format's own field parsing), a restarted line is malformed, an overlong one an overflow.
+template <typename Finish>
+hal::Status line_status(LineEvent event, Finish&& finish) noexcept {
+  switch (event) {
+    case LineEvent::kNone:
+      return hal::Status::kNoData;
+    case LineEvent::kLine:
+      return finish();
+    case LineEvent::kRestarted:
+      return hal::Status::kMalformed;
+    case LineEvent::kOverflow:
+      return hal::Status::kOverflow;
+  }
+  return hal::Status::kNoData;
+}
+
 // Counters: any struct with malformed, overflows and garbage_bytes (hal::MagCounters,
 // hal::ScalarCounters). A restarted line counts as malformed, its bytes and the skipped ones as
 // garbage.

@@ -144,171 +144,12 @@ class BatchCalibrator {
     return add(m, f_nT, nullptr);
   }
 
-  BatchResult<Scalar> solve(BatchMethod method = BatchMethod::kOneStep) noexcept {
-    BatchResult<Scalar> res;
-    res.method = method;
-    res.heading_fixed = cfg_.fix_heading_misalignment && method != BatchMethod::kEllipsoidOnly;
-    const bool need_att = method != BatchMethod::kEllipsoidOnly;
-    const bool given = !cfg_.estimate_noise;
-    AcceptanceEvidence<Scalar>& ev = res.evidence;
-    for (std::size_t i = 0; i < store_.size(); ++i) {
-      store_[i].flags = static_cast<std::uint8_t>(store_[i].flags & ~kSampleOutlier);
-    }
-    res.counts = counts_;
-    std::size_t n_att = 0;
-    for (std::size_t i = 0; i < store_.size(); ++i)
-      n_att += store_[i].has_attitude() ? 1U : 0U;
-    const std::size_t n_avail = need_att ? n_att : store_.size();
-    res.counts.used = n_avail;
-    ev.rows = counts_.offered;
-    ev.usable = n_avail;
-    ev.noise_given = given;
-    ev.heading_fixed = res.heading_fixed;
-    ev.has_prior = cfg_.prior != nullptr && method == BatchMethod::kOneStep;
-    medians(need_att, &ev.median_norm_nT, &ev.median_f_nT);
-    res.quality.median_norm_nT = ev.median_norm_nT;
-    res.quality.median_f_nT = ev.median_f_nT;
-    // 1-3 before any fit: rows, units, sample count, pitch/roll variety, raw direction coverage
-    // (the field seen from the sensor; offsets are small against |h| for a fluxgate, and a cap
-    // stays a cap whatever the offset).
-    if (need_att) res.quality.tilt_spread_deg = rad_to_deg(tilt_spread());
-    if (need_att) ev.tilt_spread_deg = res.quality.tilt_spread_deg;
-    ev.coverage = raw_coverage(need_att);
-    res.quality.coverage = ev.coverage;
-    Verdict early = judge(ev, cfg_.limits);
-    if (early == Verdict::kOk && n_avail < EllipsoidFit<Scalar>::kMinSamples)
-      early = Verdict::kTooFewSamples;  // below what the ellipsoid fit needs, whatever the limits
-    if (early != Verdict::kOk) {
-      res.verdict = early;
-      return res;
-    }
-    const Normalization<Scalar> norm = normalization();
-    res.quality.intensity_rms_raw_nT =
-        intensity_rms(Mat3<Scalar>::Identity(), Vec3<Scalar>::Zero(), need_att);
-
-    // Ellipsoid with the iterated median/MAD screen.
-    EllipsoidSolution<Scalar> ell = robust_ellipsoid(norm, need_att, &res.counts.outliers);
-    res.quality.ellipsoid_rcond = ell.rcond;
-    res.counts.used = n_avail - res.counts.outliers;
-    ev.usable = res.counts.used;
-    const bool ell_ok =
-        ell.status == EllipsoidStatus::kOk || ell.status == EllipsoidStatus::kNotConverged;
-    const bool from_prior = ev.has_prior && need_att;
-    if (!ell_ok && !from_prior) {
-      ev.not_an_ellipsoid = ell.status == EllipsoidStatus::kNotAnEllipsoid;
-      ev.ill_conditioned = ell.status == EllipsoidStatus::kIllConditioned;
-      if (ell.status == EllipsoidStatus::kTooFewSamples) ev.usable = 0;
-      res.verdict = judge(ev, cfg_.limits);
-      return res;
-    }
-    // Magnetometer noise start (or final, for the ellipsoid): robust scale of |h| - F.
-    Scalar mag_noise = cfg_.mag_noise_nT;
-    if (cfg_.estimate_noise && ell_ok) {
-      const Scalar est = robust_intensity_scale(ell.w, ell.o, need_att);
-      if (est > Scalar(0)) mag_noise = est;
-    }
-    if (method == BatchMethod::kEllipsoidOnly) {
-      ell = refine_ellipsoid_geometric(store_, norm, ell, cfg_.max_iterations);
-      res.model = ell.model();
-      res.has_model = ell.w.allFinite() && ell.o.allFinite();
-      res.li = ell.li;
-      res.quality.rcond = ell.rcond;
-      res.quality.iterations = ell.iterations;
-      res.converged = ell.status == EllipsoidStatus::kOk;
-      ev.converged = res.converged;
-      ev.not_an_ellipsoid = ell.status == EllipsoidStatus::kNotAnEllipsoid;
-      ev.ill_conditioned = ell.status == EllipsoidStatus::kIllConditioned;
-      intensity_noise(res.model, need_att, mag_noise, &res);
-      finish(&res);
-      return res;
-    }
-
-    MisalignmentOptions<Scalar> mopt;
-    mopt.fix_heading = cfg_.fix_heading_misalignment;
-    mopt.fixed_heading_rad = deg_to_rad(cfg_.fixed_heading_misalignment_deg);
-    mopt.max_sigma_rad = deg_to_rad(cfg_.max_misalignment_sigma_deg);
-    mopt.noise_floor = std::hypot(mag_noise / norm.scale, deg_to_rad(cfg_.attitude_noise_deg));
-    mopt.max_iterations = cfg_.max_iterations;
-    LiParams<Scalar> start = ell.li;
-    Vec3<Scalar> d_start = Vec3<Scalar>::UnitY();
-    MisalignmentStatus mis_status = MisalignmentStatus::kOk;
-    if (from_prior && (!ell_ok || method == BatchMethod::kOneStep)) {
-      // The prior is the start: on a cap the ellipsoid is not determined, and near a good prior
-      // the MAP fit needs no two-step start.
-      start = cfg_.prior->mean;
-      d_start = mean_direction(from_li(start));
-    } else {
-      const MisalignmentSolution<Scalar> mis = method == BatchMethod::kPlaneCompression
-                                                   ? plane_compression(store_, ell.w, ell.o, mopt)
-                                                   : joint_rm_hn(store_, ell.w, ell.o, mopt);
-      start.rm_rad = mis.rm_rad;
-      d_start = mis.h_n;
-      mis_status = mis.status;
-      res.li = start;
-      res.sigma.rm_rad = mis.rm_sigma_rad;
-      res.has_h_n = mis.has_h_n;
-      res.h_n_nT = mis.h_n;
-      res.h_n_sigma_nT = mis.h_n_sigma;
-      res.quality.rcond = mis.rcond;
-      res.quality.iterations = mis.iterations;
-      res.converged = mis.status != MisalignmentStatus::kNotConverged;
-    }
-    res.li = start;
-    if (mis_status == MisalignmentStatus::kUnobservableHeading) ev.tilt_spread_deg = 0;
-    if (mis_status == MisalignmentStatus::kIllConditioned) ev.ill_conditioned = true;
-    if (mis_status == MisalignmentStatus::kTooFewSamples) ev.usable = 0;
-    if (mis_status == MisalignmentStatus::kNotConverged) ev.converged = false;
-    if (method == BatchMethod::kOneStep && mis_status == MisalignmentStatus::kOk) {
-      const OneStepSolution<Scalar> os = OneStepFit<Scalar>::solve(
-          store_, norm, start, d_start, one_step_options(mag_noise, cfg_.attitude_noise_deg));
-      res.li = os.li;
-      res.sigma = os.sigma;
-      res.h_n_nT = os.h_n;
-      res.h_n_sigma_nT = os.h_n_sigma;
-      res.has_h_n = true;
-      res.cost = os.cost;
-      res.converged = os.converged;
-      res.quality.rcond = os.rcond;
-      res.quality.chi2_per_dof = os.chi2_per_dof;
-      res.quality.iterations = os.iterations;
-      res.quality.tail_ratio = os.tail_ratio;
-      res.quality.undetermined = os.undetermined;
-      res.quality.updated = os.updated;
-      res.quality.moved = os.moved;
-      res.noise.estimated = os.noise_estimated;
-      res.noise.mag_nT = os.mag_noise_nT;
-      res.noise.mag_sigma_nT = os.mag_noise_sigma_nT;
-      res.noise.has_attitude = true;
-      res.noise.attitude_deg = rad_to_deg(os.attitude_noise_rad);
-      res.noise.attitude_sigma_deg = rad_to_deg(os.attitude_noise_sigma_rad);
-      ev.converged = os.converged;
-      ev.undetermined = os.undetermined;
-      ev.tail_ratio = os.tail_ratio;
-      ev.chi2_per_dof = os.chi2_per_dof;
-      ev.noise_nT = os.mag_noise_nT;
-      if (os.status == OneStepStatus::kIllConditioned) ev.ill_conditioned = true;
-      if (os.status == OneStepStatus::kUnobservableHeading && !ev.has_prior) ev.tilt_spread_deg = 0;
-      if (os.status == OneStepStatus::kTooFewSamples) ev.usable = 0;
-    }
-    res.model = from_li(res.li);
-    res.has_model = res.model.w.allFinite() && res.model.o.allFinite();
-    if (method != BatchMethod::kOneStep) {
-      intensity_noise(res.model, need_att, mag_noise, &res);
-      attitude_noise(&res);
-    }
-    finish(&res);
-    return res;
-  }
+  BatchResult<Scalar> solve(BatchMethod method = BatchMethod::kOneStep) noexcept;
 
   // The one-step fit alone from a previous result, at that result's noise figures (no
   // re-estimation): the profile cost for a search over a nuisance (the time offset) after the
   // samples' attitudes changed. Status and cost of the fit.
-  OneStepSolution<Scalar> refit_one_step(const BatchResult<Scalar>& from) const noexcept {
-    OneStepOptions<Scalar> o = one_step_options(from.noise.mag_nT, from.noise.attitude_deg);
-    o.estimate_noise = false;
-    o.scale_sigma_by_residual = false;
-    return OneStepFit<Scalar>::solve(store_, normalization(), from.li, from.h_n_nT, o);
-  }
+  OneStepSolution<Scalar> refit_one_step(const BatchResult<Scalar>& from) const noexcept;
 
   // Normalisation of the stored samples: centre = mean reading, scale = mean reference field.
   Normalization<Scalar> normalization() const noexcept {
@@ -600,5 +441,181 @@ class BatchCalibrator {
   detail::StoreBuffer<Scalar, Capacity> scratch_{};
   BatchCounts counts_{};
 };
+
+template <typename Scalar, std::size_t Capacity>
+BatchResult<Scalar> BatchCalibrator<Scalar, Capacity>::solve(BatchMethod method) noexcept {
+  BatchResult<Scalar> res;
+  res.method = method;
+  res.heading_fixed = cfg_.fix_heading_misalignment && method != BatchMethod::kEllipsoidOnly;
+  const bool need_att = method != BatchMethod::kEllipsoidOnly;
+  const bool given = !cfg_.estimate_noise;
+  AcceptanceEvidence<Scalar>& ev = res.evidence;
+  for (std::size_t i = 0; i < store_.size(); ++i) {
+    store_[i].flags = static_cast<std::uint8_t>(store_[i].flags & ~kSampleOutlier);
+  }
+  res.counts = counts_;
+  std::size_t n_att = 0;
+  for (std::size_t i = 0; i < store_.size(); ++i)
+    n_att += store_[i].has_attitude() ? 1U : 0U;
+  const std::size_t n_avail = need_att ? n_att : store_.size();
+  res.counts.used = n_avail;
+  ev.rows = counts_.offered;
+  ev.usable = n_avail;
+  ev.noise_given = given;
+  ev.heading_fixed = res.heading_fixed;
+  ev.has_prior = cfg_.prior != nullptr && method == BatchMethod::kOneStep;
+  medians(need_att, &ev.median_norm_nT, &ev.median_f_nT);
+  res.quality.median_norm_nT = ev.median_norm_nT;
+  res.quality.median_f_nT = ev.median_f_nT;
+  // 1-3 before any fit: rows, units, sample count, pitch/roll variety, raw direction coverage
+  // (the field seen from the sensor; offsets are small against |h| for a fluxgate, and a cap
+  // stays a cap whatever the offset).
+  if (need_att) res.quality.tilt_spread_deg = rad_to_deg(tilt_spread());
+  if (need_att) ev.tilt_spread_deg = res.quality.tilt_spread_deg;
+  ev.coverage = raw_coverage(need_att);
+  res.quality.coverage = ev.coverage;
+  Verdict early = judge(ev, cfg_.limits);
+  if (early == Verdict::kOk && n_avail < EllipsoidFit<Scalar>::kMinSamples)
+    early = Verdict::kTooFewSamples;  // below what the ellipsoid fit needs, whatever the limits
+  if (early != Verdict::kOk) {
+    res.verdict = early;
+    return res;
+  }
+  const Normalization<Scalar> norm = normalization();
+  res.quality.intensity_rms_raw_nT =
+      intensity_rms(Mat3<Scalar>::Identity(), Vec3<Scalar>::Zero(), need_att);
+
+  // Ellipsoid with the iterated median/MAD screen.
+  EllipsoidSolution<Scalar> ell = robust_ellipsoid(norm, need_att, &res.counts.outliers);
+  res.quality.ellipsoid_rcond = ell.rcond;
+  res.counts.used = n_avail - res.counts.outliers;
+  ev.usable = res.counts.used;
+  const bool ell_ok =
+      ell.status == EllipsoidStatus::kOk || ell.status == EllipsoidStatus::kNotConverged;
+  const bool from_prior = ev.has_prior && need_att;
+  if (!ell_ok && !from_prior) {
+    ev.not_an_ellipsoid = ell.status == EllipsoidStatus::kNotAnEllipsoid;
+    ev.ill_conditioned = ell.status == EllipsoidStatus::kIllConditioned;
+    if (ell.status == EllipsoidStatus::kTooFewSamples) ev.usable = 0;
+    res.verdict = judge(ev, cfg_.limits);
+    return res;
+  }
+  // Magnetometer noise start (or final, for the ellipsoid): robust scale of |h| - F.
+  Scalar mag_noise = cfg_.mag_noise_nT;
+  if (cfg_.estimate_noise && ell_ok) {
+    const Scalar est = robust_intensity_scale(ell.w, ell.o, need_att);
+    if (est > Scalar(0)) mag_noise = est;
+  }
+  if (method == BatchMethod::kEllipsoidOnly) {
+    ell = refine_ellipsoid_geometric(store_, norm, ell, cfg_.max_iterations);
+    res.model = ell.model();
+    res.has_model = ell.w.allFinite() && ell.o.allFinite();
+    res.li = ell.li;
+    res.quality.rcond = ell.rcond;
+    res.quality.iterations = ell.iterations;
+    res.converged = ell.status == EllipsoidStatus::kOk;
+    ev.converged = res.converged;
+    ev.not_an_ellipsoid = ell.status == EllipsoidStatus::kNotAnEllipsoid;
+    ev.ill_conditioned = ell.status == EllipsoidStatus::kIllConditioned;
+    intensity_noise(res.model, need_att, mag_noise, &res);
+    finish(&res);
+    return res;
+  }
+
+  MisalignmentOptions<Scalar> mopt;
+  mopt.fix_heading = cfg_.fix_heading_misalignment;
+  mopt.fixed_heading_rad = deg_to_rad(cfg_.fixed_heading_misalignment_deg);
+  mopt.max_sigma_rad = deg_to_rad(cfg_.max_misalignment_sigma_deg);
+  mopt.noise_floor = std::hypot(mag_noise / norm.scale, deg_to_rad(cfg_.attitude_noise_deg));
+  mopt.max_iterations = cfg_.max_iterations;
+  LiParams<Scalar> start = ell.li;
+  Vec3<Scalar> d_start = Vec3<Scalar>::UnitY();
+  MisalignmentStatus mis_status = MisalignmentStatus::kOk;
+  if (from_prior && (!ell_ok || method == BatchMethod::kOneStep)) {
+    // The prior is the start: on a cap the ellipsoid is not determined, and near a good prior
+    // the MAP fit needs no two-step start.
+    start = cfg_.prior->mean;
+    d_start = mean_direction(from_li(start));
+  } else {
+    const MisalignmentSolution<Scalar> mis = method == BatchMethod::kPlaneCompression
+                                                 ? plane_compression(store_, ell.w, ell.o, mopt)
+                                                 : joint_rm_hn(store_, ell.w, ell.o, mopt);
+    start.rm_rad = mis.rm_rad;
+    d_start = mis.h_n;
+    mis_status = mis.status;
+    res.li = start;
+    res.sigma.rm_rad = mis.rm_sigma_rad;
+    res.has_h_n = mis.has_h_n;
+    res.h_n_nT = mis.h_n;
+    res.h_n_sigma_nT = mis.h_n_sigma;
+    res.quality.rcond = mis.rcond;
+    res.quality.iterations = mis.iterations;
+    res.converged = mis.status != MisalignmentStatus::kNotConverged;
+  }
+  res.li = start;
+  if (mis_status == MisalignmentStatus::kUnobservableHeading) ev.tilt_spread_deg = 0;
+  if (mis_status == MisalignmentStatus::kIllConditioned) ev.ill_conditioned = true;
+  if (mis_status == MisalignmentStatus::kTooFewSamples) ev.usable = 0;
+  if (mis_status == MisalignmentStatus::kNotConverged) ev.converged = false;
+  if (method == BatchMethod::kOneStep && mis_status == MisalignmentStatus::kOk) {
+    const OneStepSolution<Scalar> os = OneStepFit<Scalar>::solve(
+        store_, norm, start, d_start, one_step_options(mag_noise, cfg_.attitude_noise_deg));
+    res.li = os.li;
+    res.sigma = os.sigma;
+    res.h_n_nT = os.h_n;
+    res.h_n_sigma_nT = os.h_n_sigma;
+    res.has_h_n = true;
+    res.cost = os.cost;
+    res.converged = os.converged;
+    res.quality.rcond = os.rcond;
+    res.quality.chi2_per_dof = os.chi2_per_dof;
+    res.quality.iterations = os.iterations;
+    res.quality.tail_ratio = os.tail_ratio;
+    res.quality.undetermined = os.undetermined;
+    res.quality.updated = os.updated;
+    res.quality.moved = os.moved;
+    res.noise.estimated = os.noise_estimated;
+    res.noise.mag_nT = os.mag_noise_nT;
+    res.noise.mag_sigma_nT = os.mag_noise_sigma_nT;
+    res.noise.has_attitude = true;
+    res.noise.attitude_deg = rad_to_deg(os.attitude_noise_rad);
+    res.noise.attitude_sigma_deg = rad_to_deg(os.attitude_noise_sigma_rad);
+    ev.converged = os.converged;
+    ev.undetermined = os.undetermined;
+    ev.tail_ratio = os.tail_ratio;
+    ev.chi2_per_dof = os.chi2_per_dof;
+    ev.noise_nT = os.mag_noise_nT;
+    if (os.status == OneStepStatus::kIllConditioned) ev.ill_conditioned = true;
+    if (os.status == OneStepStatus::kUnobservableHeading && !ev.has_prior) ev.tilt_spread_deg = 0;
+    if (os.status == OneStepStatus::kTooFewSamples) ev.usable = 0;
+  }
+  res.model = from_li(res.li);
+  res.has_model = res.model.w.allFinite() && res.model.o.allFinite();
+  if (method != BatchMethod::kOneStep) {
+    intensity_noise(res.model, need_att, mag_noise, &res);
+    attitude_noise(&res);
+  }
+  finish(&res);
+  return res;
+}
+
+template <typename Scalar, std::size_t Capacity>
+OneStepSolution<Scalar> BatchCalibrator<Scalar, Capacity>::refit_one_step(
+    const BatchResult<Scalar>& from) const noexcept {
+  OneStepOptions<Scalar> o = one_step_options(from.noise.mag_nT, from.noise.attitude_deg);
+  o.estimate_noise = false;
+  o.scale_sigma_by_residual = false;
+  return OneStepFit<Scalar>::solve(store_, normalization(), from.li, from.h_n_nT, o);
+}
+
+// Compiled once for the host's capacities (firmware/core/src/inst_batch_calibrator_double_*.cpp,
+// the magvec::core_batch_double library): a unit that instantiates the batch solve costs about
+// two minutes of compile time, so the units that use these only call it. solve() and
+// refit_one_step() are defined outside the class because GCC instantiates in-class (implicitly
+// inline) members for inlining even under `extern template`.
+extern template class BatchCalibrator<double, 64>;    // the vector filter's start from data
+extern template class BatchCalibrator<double, 512>;   // the host's li calibrator
+extern template class BatchCalibrator<double, 1024>;  // core tests
+extern template class BatchCalibrator<double, kDynamicCapacity>;  // batch over recordings
 
 }  // namespace magvec::core

@@ -237,70 +237,12 @@ class VectorCalibrationFilter {
   explicit VectorCalibrationFilter(const Config& cfg = Config{}) noexcept { configure(cfg); }
 
   // Replaces the configuration; clears everything (counters included) and collects for a start.
-  void configure(const Config& cfg) noexcept {
-    cfg_ = cfg;
-    cfg_.init_samples = std::clamp(cfg_.init_samples, 16, kInitCapacity);
-    cfg_.init_replay_passes = std::max(cfg_.init_replay_passes, 1);
-    cfg_.init_full_passes = std::max(cfg_.init_full_passes, 0);
-    cfg_.nis_window = std::max(cfg_.nis_window, 10);
-    cfg_.field_change_after = std::max(cfg_.field_change_after, 1);
-    counters_ = VfCounters{};
-    last_reset_ = VfResetReason::kNone;
-    scale_ = cfg_.field_scale_nT > Scalar(0) ? cfg_.field_scale_nT : Scalar(0);
-    t0_ = cfg_.temperature_ref_degC;
-    last_t_ = t0_;
-    pending_start_ = false;
-    restart();
-  }
+  void configure(const Config& cfg) noexcept;
 
   // Starts from a stored calibration (E-VF-1); the filter runs from the next sample.
-  void start(const VfStart<Scalar>& s) noexcept {
-    restart();
-    stored_ = s;
-    pending_start_ = true;
-    if (std::isfinite(s.temperature_ref_degC)) {
-      t0_ = s.temperature_ref_degC;
-      last_t_ = t0_;
-    }
-    if (!(scale_ > Scalar(0)) && s.h_n_nT.allFinite() && s.h_n_nT.norm() > Scalar(0))
-      scale_ = s.h_n_nT.norm();
-  }
+  void start(const VfStart<Scalar>& s) noexcept;
 
-  VfStatus update(const VfSample<Scalar>& in) noexcept {
-    ++counters_.samples;
-    if (!in.m_nT.allFinite() || !in.r_bn.allFinite() || !in.omega_n_rad_s.allFinite()) {
-      ++counters_.rejected_nonfinite;
-      return VfStatus::kRejectedNonFinite;
-    }
-    Scalar f = in.f_nT;
-    if (!(std::isfinite(f) && f > Scalar(0))) f = std::numeric_limits<Scalar>::quiet_NaN();
-    if (!(scale_ > Scalar(0))) {
-      if (std::isfinite(f)) {
-        scale_ = f;
-      } else if (cfg_.reference_field_nT > Scalar(0)) {
-        scale_ = cfg_.reference_field_nT;
-      } else if (pending_start_) {
-        scale_ = (stored_.model.w * (in.m_nT - stored_.model.o)).norm();
-      }
-      if (!(scale_ > Scalar(0))) return VfStatus::kRejectedNoReference;
-    }
-    if (std::isfinite(in.temperature_degC)) {
-      if (!std::isfinite(t0_)) t0_ = in.temperature_degC;
-      last_t_ = in.temperature_degC;
-    }
-    note_tilt(in.r_bn);
-    if (pending_start_) start_stored(in, f);
-    if (!running_) return collect(in, f);
-    Prepared p = prepare(in.m_nT, in.r_bn, in.omega_n_rad_s, f, last_t_);
-    const Scalar dt = std::isfinite(in.interval_s) && in.interval_s >= Scalar(0)
-                          ? in.interval_s
-                          : cfg_.sample_interval_s;
-    add_process_noise(dt);
-    if (settling_) remember(in, f, counters_.samples);
-    const VfStatus st = live_step(p);
-    if (settling_ && running_ && replay_n_ >= kReplayCapacity) return settle(st);
-    return st;
-  }
+  VfStatus update(const VfSample<Scalar>& in) noexcept;
 
   bool initialised() const noexcept { return running_; }
   const VfCounters& counters() const noexcept { return counters_; }
@@ -338,39 +280,11 @@ class VectorCalibrationFilter {
   Scalar time_offset_s() const noexcept { return full()(kDt); }
   // The calibration at a temperature (NaN: the last one seen), canonical form.
   SensorModel<Scalar> model(
-      Scalar t_degC = std::numeric_limits<Scalar>::quiet_NaN()) const noexcept {
-    SensorModel<Scalar> m;
-    m.w = w();
-    m.o = offset_nT(t_degC);
-    m.rm = rm_current();
-    return m;
-  }
+      Scalar t_degC = std::numeric_limits<Scalar>::quiet_NaN()) const noexcept;
 
   // Covariance in interface units (W 1, o nT, Rm rad about body axes, h_n nT, dt s, c nT/degC).
-  StateMat covariance() const noexcept {
-    const StateMat p = covariance_normalised();
-    const StateVec t = unit_scale();
-    return t.asDiagonal() * p * t.asDiagonal();
-  }
-  VfSigmas<Scalar> sigmas(Scalar t_degC = std::numeric_limits<Scalar>::quiet_NaN()) const noexcept {
-    const StateMat p = covariance();
-    VfSigmas<Scalar> s;
-    auto sd = [&](int k) { return std::sqrt(std::max(p(k, k), Scalar(0))); };
-    for (int k = 0; k < kWEntries; ++k)
-      s.w(kWRow[static_cast<std::size_t>(k)], kWCol[static_cast<std::size_t>(k)]) = sd(kW0 + k);
-    const Scalar dtc = delta_t(t_degC);
-    for (int i = 0; i < 3; ++i) {
-      s.o_ref_nT(i) = sd(kO0 + i);
-      const Scalar v = p(kO0 + i, kO0 + i) + Scalar(2) * dtc * p(kO0 + i, kTc0 + i) +
-                       dtc * dtc * p(kTc0 + i, kTc0 + i);
-      s.o_nT(i) = std::sqrt(std::max(v, Scalar(0)));
-      s.rm_rad(i) = sd(kRm0 + i);
-      s.h_n_nT(i) = sd(kHn0 + i);
-      s.tc_nT_per_degC(i) = sd(kTc0 + i);
-    }
-    s.dt_s = sd(kDt);
-    return s;
-  }
+  StateMat covariance() const noexcept;
+  VfSigmas<Scalar> sigmas(Scalar t_degC = std::numeric_limits<Scalar>::quiet_NaN()) const noexcept;
 
  private:
   static constexpr Scalar kNaN = std::numeric_limits<Scalar>::quiet_NaN();
@@ -1214,5 +1128,122 @@ class VectorCalibrationFilter {
   Scalar noise_factor_{1};                       // replay damping (1 when running live)
   Vec3<Scalar> ref_dir_ = Vec3<Scalar>::Zero();  // reference update's direction (E-VF-4)
 };
+
+template <typename Scalar, int kInitCapacity, int kReplayCapacity>
+void VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>::configure(
+    const Config& cfg) noexcept {
+  cfg_ = cfg;
+  cfg_.init_samples = std::clamp(cfg_.init_samples, 16, kInitCapacity);
+  cfg_.init_replay_passes = std::max(cfg_.init_replay_passes, 1);
+  cfg_.init_full_passes = std::max(cfg_.init_full_passes, 0);
+  cfg_.nis_window = std::max(cfg_.nis_window, 10);
+  cfg_.field_change_after = std::max(cfg_.field_change_after, 1);
+  counters_ = VfCounters{};
+  last_reset_ = VfResetReason::kNone;
+  scale_ = cfg_.field_scale_nT > Scalar(0) ? cfg_.field_scale_nT : Scalar(0);
+  t0_ = cfg_.temperature_ref_degC;
+  last_t_ = t0_;
+  pending_start_ = false;
+  restart();
+}
+
+template <typename Scalar, int kInitCapacity, int kReplayCapacity>
+void VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>::start(
+    const VfStart<Scalar>& s) noexcept {
+  restart();
+  stored_ = s;
+  pending_start_ = true;
+  if (std::isfinite(s.temperature_ref_degC)) {
+    t0_ = s.temperature_ref_degC;
+    last_t_ = t0_;
+  }
+  if (!(scale_ > Scalar(0)) && s.h_n_nT.allFinite() && s.h_n_nT.norm() > Scalar(0))
+    scale_ = s.h_n_nT.norm();
+}
+
+template <typename Scalar, int kInitCapacity, int kReplayCapacity>
+VfStatus VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>::update(
+    const VfSample<Scalar>& in) noexcept {
+  ++counters_.samples;
+  if (!in.m_nT.allFinite() || !in.r_bn.allFinite() || !in.omega_n_rad_s.allFinite()) {
+    ++counters_.rejected_nonfinite;
+    return VfStatus::kRejectedNonFinite;
+  }
+  Scalar f = in.f_nT;
+  if (!(std::isfinite(f) && f > Scalar(0))) f = std::numeric_limits<Scalar>::quiet_NaN();
+  if (!(scale_ > Scalar(0))) {
+    if (std::isfinite(f)) {
+      scale_ = f;
+    } else if (cfg_.reference_field_nT > Scalar(0)) {
+      scale_ = cfg_.reference_field_nT;
+    } else if (pending_start_) {
+      scale_ = (stored_.model.w * (in.m_nT - stored_.model.o)).norm();
+    }
+    if (!(scale_ > Scalar(0))) return VfStatus::kRejectedNoReference;
+  }
+  if (std::isfinite(in.temperature_degC)) {
+    if (!std::isfinite(t0_)) t0_ = in.temperature_degC;
+    last_t_ = in.temperature_degC;
+  }
+  note_tilt(in.r_bn);
+  if (pending_start_) start_stored(in, f);
+  if (!running_) return collect(in, f);
+  Prepared p = prepare(in.m_nT, in.r_bn, in.omega_n_rad_s, f, last_t_);
+  const Scalar dt = std::isfinite(in.interval_s) && in.interval_s >= Scalar(0)
+                        ? in.interval_s
+                        : cfg_.sample_interval_s;
+  add_process_noise(dt);
+  if (settling_) remember(in, f, counters_.samples);
+  const VfStatus st = live_step(p);
+  if (settling_ && running_ && replay_n_ >= kReplayCapacity) return settle(st);
+  return st;
+}
+
+template <typename Scalar, int kInitCapacity, int kReplayCapacity>
+SensorModel<Scalar> VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>::model(
+    Scalar t_degC) const noexcept {
+  SensorModel<Scalar> m;
+  m.w = w();
+  m.o = offset_nT(t_degC);
+  m.rm = rm_current();
+  return m;
+}
+
+template <typename Scalar, int kInitCapacity, int kReplayCapacity>
+typename VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>::StateMat
+VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>::covariance() const noexcept {
+  const StateMat p = covariance_normalised();
+  const StateVec t = unit_scale();
+  return t.asDiagonal() * p * t.asDiagonal();
+}
+
+template <typename Scalar, int kInitCapacity, int kReplayCapacity>
+VfSigmas<Scalar> VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>::sigmas(
+    Scalar t_degC) const noexcept {
+  const StateMat p = covariance();
+  VfSigmas<Scalar> s;
+  auto sd = [&](int k) { return std::sqrt(std::max(p(k, k), Scalar(0))); };
+  for (int k = 0; k < kWEntries; ++k)
+    s.w(kWRow[static_cast<std::size_t>(k)], kWCol[static_cast<std::size_t>(k)]) = sd(kW0 + k);
+  const Scalar dtc = delta_t(t_degC);
+  for (int i = 0; i < 3; ++i) {
+    s.o_ref_nT(i) = sd(kO0 + i);
+    const Scalar v = p(kO0 + i, kO0 + i) + Scalar(2) * dtc * p(kO0 + i, kTc0 + i) +
+                     dtc * dtc * p(kTc0 + i, kTc0 + i);
+    s.o_nT(i) = std::sqrt(std::max(v, Scalar(0)));
+    s.rm_rad(i) = sd(kRm0 + i);
+    s.h_n_nT(i) = sd(kHn0 + i);
+    s.tc_nT_per_degC(i) = sd(kTc0 + i);
+  }
+  s.dt_s = sd(kDt);
+  return s;
+}
+
+// Compiled once per scalar (firmware/core/src/inst_vector_<scalar>.cpp, the magvec::core_vector
+// library): an instantiation of the filter costs minutes of compile time, so the units that use it
+// only call it. Its entry points are defined outside the class because GCC instantiates in-class
+// (implicitly inline) members for inlining even under `extern template`.
+extern template class VectorCalibrationFilter<float>;
+extern template class VectorCalibrationFilter<double>;
 
 }  // namespace magvec::core

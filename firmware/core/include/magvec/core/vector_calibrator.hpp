@@ -152,36 +152,7 @@ class VectorCalibrator {
     filter_.configure(cfg_.filter);
   }
 
-  CalibratorAdd add(const MagSample<Scalar>& s, const Mat3<Scalar>* r_bn) noexcept {
-    ++counts_.seen;
-    const bool bad_f = std::isinf(s.f_ref_nT);
-    const bool bad_t = std::isinf(s.temperature_degC);
-    if (!s.m_nT.allFinite() || bad_f || bad_t || (r_bn != nullptr && !r_bn->allFinite())) {
-      ++counts_.nonfinite;
-      return CalibratorAdd::kRejected;
-    }
-    if (r_bn == nullptr) {
-      ++counts_.no_attitude;
-      have_prev_ = false;  // no rate across a missing attitude
-      return CalibratorAdd::kRejected;
-    }
-    VfSample<Scalar> v;
-    v.m_nT = s.m_nT;
-    v.r_bn = *r_bn;
-    v.f_nT = s.f_ref_nT;
-    v.temperature_degC = s.temperature_degC;
-    if (have_prev_ && s.t_us > prev_t_us_) {
-      const Scalar span = static_cast<Scalar>(s.t_us - prev_t_us_) * Scalar(1e-6);
-      v.interval_s = span;
-      if (span <= cfg_.max_rate_span_s)
-        v.omega_n_rad_s = rate_n_from_attitudes(prev_r_, v.r_bn, span);
-    }
-    have_prev_ = true;
-    prev_t_us_ = s.t_us;
-    prev_r_ = v.r_bn;
-    if (!noise_known_) return collect_for_noise(v);
-    return to_loop(filter_.update(v));
-  }
+  CalibratorAdd add(const MagSample<Scalar>& s, const Mat3<Scalar>* r_bn) noexcept;
 
   Scalar progress() const noexcept {
     // The start-up set is the first tenth (as the guidance shows the scalar EKF's).
@@ -365,5 +336,42 @@ class VectorCalibrator {
   std::uint64_t prev_t_us_{0};
   Mat3<Scalar> prev_r_ = Mat3<Scalar>::Identity();
 };
+
+template <typename Scalar, int InitCapacity>
+CalibratorAdd VectorCalibrator<Scalar, InitCapacity>::add(const MagSample<Scalar>& s,
+                                                          const Mat3<Scalar>* r_bn) noexcept {
+  ++counts_.seen;
+  const bool bad_f = std::isinf(s.f_ref_nT);
+  const bool bad_t = std::isinf(s.temperature_degC);
+  if (!s.m_nT.allFinite() || bad_f || bad_t || (r_bn != nullptr && !r_bn->allFinite())) {
+    ++counts_.nonfinite;
+    return CalibratorAdd::kRejected;
+  }
+  if (r_bn == nullptr) {
+    ++counts_.no_attitude;
+    have_prev_ = false;  // no rate across a missing attitude
+    return CalibratorAdd::kRejected;
+  }
+  VfSample<Scalar> v;
+  v.m_nT = s.m_nT;
+  v.r_bn = *r_bn;
+  v.f_nT = s.f_ref_nT;
+  v.temperature_degC = s.temperature_degC;
+  if (have_prev_ && s.t_us > prev_t_us_) {
+    const Scalar span = static_cast<Scalar>(s.t_us - prev_t_us_) * Scalar(1e-6);
+    v.interval_s = span;
+    if (span <= cfg_.max_rate_span_s)
+      v.omega_n_rad_s = rate_n_from_attitudes(prev_r_, v.r_bn, span);
+  }
+  have_prev_ = true;
+  prev_t_us_ = s.t_us;
+  prev_r_ = v.r_bn;
+  if (!noise_known_) return collect_for_noise(v);
+  return to_loop(filter_.update(v));
+}
+
+// Compiled once per scalar with the filter (see the end of vector_calibration_filter.hpp).
+extern template class VectorCalibrator<float>;
+extern template class VectorCalibrator<double>;
 
 }  // namespace magvec::core

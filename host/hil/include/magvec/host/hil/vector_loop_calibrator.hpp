@@ -1,11 +1,10 @@
 // VectorLoopCalibrator: the host's `vector-ekf` calibrator, core::VectorCalibrator<double>
-// (firmware/core/.../vector_calibrator.hpp, docs/equations.md E-VF) behind a compiled interface.
+// (firmware/core/.../vector_calibrator.hpp, docs/equations.md E-VF) behind a plain class.
 //
-// Why a wrapper and not the core type itself: the 19-state filter's fixed-size Eigen code costs
-// minutes of compile time per translation unit that instantiates it, and magvec run, magvec demo
-// and magvecd each instantiate the sample pipeline for every calibrator mode. Here the filter is
-// instantiated once (vector_loop_calibrator.cpp); callers see a plain class whose members forward
-// to it, and a Diagnostics snapshot of plain values. The estimation is the core's, unchanged.
+// The calibrator itself is compiled once (magvec::core_vector_double); this wrapper keeps its
+// configuration and a Diagnostics snapshot of plain values in one place for magvec run, magvec demo
+// and magvecd, whose sample pipelines hold it like the other calibrator modes. The estimation is
+// the core's, unchanged.
 #pragma once
 
 #include <cstdint>

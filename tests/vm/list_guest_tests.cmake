@@ -14,7 +14,8 @@ foreach(line IN LISTS lines)
   elseif(line MATCHES "^  ([^ #]+)")
     set(test "${NAME}.${suite}.${CMAKE_MATCH_1}")
     string(APPEND text "add_test(vm.${test} \"${CHECK}\" \"${LOG}\" test ${test})\n"
-                       "set_tests_properties(vm.${test} PROPERTIES LABELS vm FIXTURES_REQUIRED magvec_vm)\n")
+                       "set_tests_properties(vm.${test} PROPERTIES LABELS vm FIXTURES_REQUIRED magvec_vm "
+                       "SKIP_RETURN_CODE 77)\n")
   endif()
 endforeach()
 string(APPEND text "add_test(vm.${NAME} \"${CHECK}\" \"${LOG}\" binary ${NAME})\n"

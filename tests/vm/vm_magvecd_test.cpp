@@ -800,6 +800,7 @@ TEST_F(MagvecdVm, NoConversionLostWhileTheSolveRuns) {
       r.vspi_fed, r.vspi_frames, r.vspi_overruns, r.vspi_max_queued);
   EXPECT_EQ(r.vspi_fed, static_cast<long long>(kSamples));
   EXPECT_EQ(r.vspi_frames, r.vspi_fed) << "conversions the daemon read as new data";
+  std::string not_judged;  // the late-read claim on a stalling guest (see below)
   // Each late read attributed to its conversion (RigSample::overruns_after): conversion j read
   // after j+1 was queued is counted between the edges j+1 and j+2. Conversion j+1 is queued when
   // the rig wakes for it, so the daemon had from edge j to that wake to read j. A guest stall
@@ -846,10 +847,14 @@ TEST_F(MagvecdVm, NoConversionLostWhileTheSolveRuns) {
     EXPECT_EQ(daemon + excused, r.vspi_overruns);
     const double share = stalled_share(r);
     if (share > kMaxStalledShare) {
-      std::printf(
-          "NOT JUDGED: late reads (%lld the daemon's by the rule above): the guest was stopped "
-          "%.1f %% of the run (limit %.0f %%)\n",
-          daemon, 100 * share, 100 * kMaxStalledShare);
+      if (daemon > 0) {
+        char why[200];
+        std::snprintf(why, sizeof why,
+                      "NOT JUDGED: %lld late reads the daemon's by the rule above, but the guest "
+                      "was stopped %.1f %% of the run (limit %.0f %%)",
+                      daemon, 100 * share, 100 * kMaxStalledShare);
+        not_judged = why;
+      }
     } else {
       EXPECT_EQ(daemon, 0) << "conversions read after the next one was queued, with the guest "
                               "running ("
@@ -944,6 +949,8 @@ TEST_F(MagvecdVm, NoConversionLostWhileTheSolveRuns) {
     std::printf("daemon: %s\n", log.substr(at, log.find('\n', at) - at).c_str());
   EXPECT_NE(log.find("solve on the worker"), std::string::npos) << log;
   EXPECT_EQ(in_window_out, in_window);
+  // Last, after every other assertion ran (a failure above still fails the test).
+  if (!not_judged.empty()) GTEST_SKIP() << not_judged;
 }
 
 TEST_F(MagvecdVm, CalibratesAppliesAndPersists) {

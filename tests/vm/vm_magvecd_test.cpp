@@ -685,7 +685,8 @@ double stalled_share(const VmRun& run) {
   double us = 0;
   for (const auto& st : run.stalls)
     us += static_cast<double>(st.second - st.first);
-  return run.rig_seconds > 0 ? 1e-6 * us / run.rig_seconds : 1.0;
+  // No rig run: nothing to excuse (the claims are then judged, and fail on the missing data).
+  return run.rig_seconds > 0 ? 1e-6 * us / run.rig_seconds : 0.0;
 }
 
 bool in_solve(const VmRun& run, std::uint64_t t_us) {

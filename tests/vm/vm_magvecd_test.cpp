@@ -328,7 +328,6 @@ bool write_pull(int fd, const char* value) {
   return pwrite(fd, value, static_cast<std::size_t>(n), 0) == n;
 }
 
-// The rig: plays the scenario through the guest's devices on a schedule of guest monotonic time.
 std::string vspi_param(const char* name);
 
 // A SCHED_FIFO thread above the rig and the daemon that wakes every kWatchPeriodNs: a wake more
@@ -372,8 +371,26 @@ class StallWatch {
 // nor the daemon's can be what hardware would give. The share of the run the watchdog saw the
 // guest stopped; above kMaxStalledShare those claims are reported as not judged, with the figure.
 constexpr double kMaxStalledShare = 0.02;
-double stalled_share(const VmRun& run);
 
+// Guest time [from_us, to_us] the watchdog saw the guest stopped.
+double stalled_us(const VmRun& run, std::uint64_t from_us, std::uint64_t to_us) {
+  double us = 0;
+  for (const auto& st : run.stalls) {
+    const std::uint64_t a = std::max(st.first, from_us), b = std::min(st.second, to_us);
+    if (b > a) us += static_cast<double>(b - a);
+  }
+  return us;
+}
+
+double stalled_share(const VmRun& run) {
+  // No rig run: nothing to excuse (the claims are then judged, and fail on the missing data).
+  return run.rig_seconds > 0
+             ? 1e-6 * stalled_us(run, 0, std::numeric_limits<std::uint64_t>::max()) /
+                   run.rig_seconds
+             : 0.0;
+}
+
+// The rig: plays the scenario through the guest's devices on a schedule of guest monotonic time.
 class Rig {
  public:
   Rig(VmRun& run, int feed, int pull, magvec::drivers::SocketCanBus& can,
@@ -681,14 +698,6 @@ long match_sample(const std::vector<RigSample>& s, std::int64_t t_us) {
   return k;
 }
 
-double stalled_share(const VmRun& run) {
-  double us = 0;
-  for (const auto& st : run.stalls)
-    us += static_cast<double>(st.second - st.first);
-  // No rig run: nothing to excuse (the claims are then judged, and fail on the missing data).
-  return run.rig_seconds > 0 ? 1e-6 * us / run.rig_seconds : 0.0;
-}
-
 bool in_solve(const VmRun& run, std::uint64_t t_us) {
   for (const auto& w : run.solves)
     if (t_us >= w.first && (w.second == 0 || t_us <= w.second)) return true;
@@ -814,11 +823,8 @@ TEST_F(MagvecdVm, NoConversionLostWhileTheSolveRuns) {
     const long long end = r.vspi_overruns0 + r.vspi_overruns;
     const double period_us = 1e6 / kRateHz;
     long long excused = 0, daemon = 0;
-    double stalled_total_us = 0;
-    for (const auto& st : r.stalls)
-      stalled_total_us += static_cast<double>(st.second - st.first);
     std::printf("guest stalls seen by the watchdog: %zu, %.0f ms in all\n", r.stalls.size(),
-                1e-3 * stalled_total_us);
+                1e-3 * stalled_us(r, 0, std::numeric_limits<std::uint64_t>::max()));
     for (std::size_t j = 0; j + 1 < rs.size(); ++j) {
       const RigSample& next = rs[j + 1];
       const long long d =
@@ -827,18 +833,14 @@ TEST_F(MagvecdVm, NoConversionLostWhileTheSolveRuns) {
       // The window: edge j to the rig's wake for j+1 (kSpinNs before its edge's due time).
       const std::uint64_t from = rs[j].pull_us;
       const std::uint64_t to = next.due_us - kSpinNs / 1000 + next.wake_late_us;
-      double stalled_us = 0;
-      for (const auto& st : r.stalls) {
-        const std::uint64_t a = std::max(st.first, from), b = std::min(st.second, to);
-        if (b > a) stalled_us += static_cast<double>(b - a);
-      }
+      const double window_stalled_us = stalled_us(r, from, to);
       const bool restart =
           std::find(r.restarts_s.begin(), r.restarts_s.end(), next.t_s) != r.restarts_s.end();
-      const bool stalled = restart || stalled_us > 0.5 * period_us;
+      const bool stalled = restart || window_stalled_us > 0.5 * period_us;
       std::printf(
           "late read of conversion %zu (x%lld): guest stalled %.1f ms of the %.1f ms before the "
           "next was queued%s -> %s\n",
-          j, d, 1e-3 * stalled_us, 1e-3 * static_cast<double>(to - from),
+          j, d, 1e-3 * window_stalled_us, 1e-3 * static_cast<double>(to - from),
           restart ? ", the rig restarted its schedule" : "",
           stalled ? "the emulator's" : "the daemon's");
       (stalled ? excused : daemon) += d;

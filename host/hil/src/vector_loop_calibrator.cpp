@@ -1,5 +1,5 @@
-// VectorLoopCalibrator: core::VectorCalibrator<double> (compiled in magvec::core_vector) behind a
-// plain class; see vector_loop_calibrator.hpp.
+// VectorLoopCalibrator: core::VectorCalibrator<double> (compiled in magvec::core_vector_double)
+// behind a plain class; see vector_loop_calibrator.hpp.
 #include "magvec/host/hil/vector_loop_calibrator.hpp"
 
 namespace magvec::host::hil {

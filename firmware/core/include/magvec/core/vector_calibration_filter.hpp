@@ -1239,10 +1239,11 @@ VfSigmas<Scalar> VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>
   return s;
 }
 
-// Compiled once per scalar (firmware/core/src/inst_vector_<scalar>.cpp, the magvec::core_vector
-// library): an instantiation of the filter costs minutes of compile time, so the units that use it
-// only call it. Its entry points are defined outside the class because GCC instantiates in-class
-// (implicitly inline) members for inlining even under `extern template`.
+// Compiled once per scalar (firmware/core/src/inst_vector_<scalar>.cpp, the
+// magvec::core_vector_<scalar> library): an instantiation of the filter costs minutes of compile
+// time, so the units that use it only call it. Its entry points are defined outside the class
+// because GCC instantiates in-class (implicitly inline) members for inlining even under `extern
+// template`.
 extern template class VectorCalibrationFilter<float>;
 extern template class VectorCalibrationFilter<double>;
 

@@ -612,10 +612,13 @@ OneStepSolution<Scalar> BatchCalibrator<Scalar, Capacity>::refit_one_step(
 // the magvec::core_batch_double library): a unit that instantiates the batch solve costs about
 // two minutes of compile time, so the units that use these only call it. solve() and
 // refit_one_step() are defined outside the class because GCC instantiates in-class (implicitly
-// inline) members for inlining even under `extern template`.
+// inline) members for inlining even under `extern template`. A unit sees these declarations when
+// it links that library (its compile definition); any other unit instantiates its own.
+#ifdef MAGVEC_CORE_BATCH_DOUBLE_COMPILED
 extern template class BatchCalibrator<double, 64>;    // the vector filter's start from data
 extern template class BatchCalibrator<double, 512>;   // the host's li calibrator
 extern template class BatchCalibrator<double, 1024>;  // core tests
 extern template class BatchCalibrator<double, kDynamicCapacity>;  // batch over recordings
+#endif
 
 }  // namespace magvec::core

@@ -112,16 +112,7 @@ class EkfCalibrator {
     align_ = MisalignmentSolution<Scalar>{};
   }
 
-  CalibratorAdd add(const Vec3<Scalar>& m, Scalar f_ref_nT, const Mat3<Scalar>* r_bn) noexcept {
-    const EkfStatus st = ekf_.update(m, f_ref_nT);
-    if (st == EkfStatus::kRejectedNonFinite || st == EkfStatus::kRejectedBadReference)
-      return CalibratorAdd::kRejected;
-    if (st == EkfStatus::kGated) return CalibratorAdd::kGated;
-    last_m_ = m;
-    have_m_ = true;
-    if (cfg_.align && r_bn != nullptr && r_bn->allFinite()) keep_for_alignment(m, f_ref_nT, *r_bn);
-    return CalibratorAdd::kUsed;
-  }
+  CalibratorAdd add(const Vec3<Scalar>& m, Scalar f_ref_nT, const Mat3<Scalar>* r_bn) noexcept;
 
   Scalar progress() const noexcept {
     if (!ekf_.initialised()) return Scalar(0);
@@ -143,41 +134,7 @@ class EkfCalibrator {
     return sigma_f_nT() <= cfg_.max_sigma_f_nT;
   }
 
-  CalibratorSolve solve(SensorModel<Scalar>* out) noexcept {
-    aligned_ = false;
-    if (!ekf_.initialised()) return fail(EkfCalCode::kNotInitialised);
-    SensorModel<Scalar> model = ekf_.model();
-    if (cfg_.align) {
-      align_ = joint_rm_hn(store_, model.w, model.o, cfg_.misalignment);
-      switch (align_.status) {
-        case MisalignmentStatus::kOk:
-          break;
-        case MisalignmentStatus::kTooFewSamples:
-          return fail(EkfCalCode::kAlignTooFewSamples);
-        case MisalignmentStatus::kUnobservableHeading:
-          return fail(EkfCalCode::kAlignUnobservable);
-        case MisalignmentStatus::kIllConditioned:
-          return fail(EkfCalCode::kAlignIllConditioned);
-        case MisalignmentStatus::kNotConverged:
-          return fail(EkfCalCode::kAlignNotConverged);
-      }
-      model.rm = Quat<Scalar>(li_rm(align_.rm_rad));
-      model.rm.normalize();
-      SensorModel<Scalar> li;
-      if (canonicalize_li(model, &li) != ConversionStatus::kOk)
-        return fail(EkfCalCode::kNotLiRepresentable);
-      model = li;
-      aligned_ = true;
-    }
-    *out = model;
-    // Without the alignment step W is known only up to a rotation and Rm = I: not aligned.
-    CalibratorSolve r{true, 0, aligned_};
-    r.mag_noise_nT = static_cast<float>(ekf_.noise_nT());
-    // The alignment fit's residual (relative to F) as the attitude noise: it also holds the
-    // magnetometer noise over F, so the vector check's floor is conservative, never too tight.
-    if (aligned_) r.attitude_noise_deg = static_cast<float>(rad_to_deg(align_.residual_rms));
-    return r;
-  }
+  CalibratorSolve solve(SensorModel<Scalar>* out) noexcept;
 
   // --- diagnostics ------------------------------------------------------------------------------
   // True when the last solved model is aligned to the INS (Rm fitted): h_n is meaningful.
@@ -227,5 +184,61 @@ class EkfCalibrator {
   Vec3<Scalar> last_m_ = Vec3<Scalar>::Zero();
   Mat3<Scalar> last_r_bn_ = Mat3<Scalar>::Identity();
 };
+
+template <typename Scalar, std::size_t AlignCapacity, int InitCapacity>
+CalibratorAdd EkfCalibrator<Scalar, AlignCapacity, InitCapacity>::add(
+    const Vec3<Scalar>& m, Scalar f_ref_nT, const Mat3<Scalar>* r_bn) noexcept {
+  const EkfStatus st = ekf_.update(m, f_ref_nT);
+  if (st == EkfStatus::kRejectedNonFinite || st == EkfStatus::kRejectedBadReference)
+    return CalibratorAdd::kRejected;
+  if (st == EkfStatus::kGated) return CalibratorAdd::kGated;
+  last_m_ = m;
+  have_m_ = true;
+  if (cfg_.align && r_bn != nullptr && r_bn->allFinite()) keep_for_alignment(m, f_ref_nT, *r_bn);
+  return CalibratorAdd::kUsed;
+}
+
+template <typename Scalar, std::size_t AlignCapacity, int InitCapacity>
+CalibratorSolve EkfCalibrator<Scalar, AlignCapacity, InitCapacity>::solve(
+    SensorModel<Scalar>* out) noexcept {
+  aligned_ = false;
+  if (!ekf_.initialised()) return fail(EkfCalCode::kNotInitialised);
+  SensorModel<Scalar> model = ekf_.model();
+  if (cfg_.align) {
+    align_ = joint_rm_hn(store_, model.w, model.o, cfg_.misalignment);
+    switch (align_.status) {
+      case MisalignmentStatus::kOk:
+        break;
+      case MisalignmentStatus::kTooFewSamples:
+        return fail(EkfCalCode::kAlignTooFewSamples);
+      case MisalignmentStatus::kUnobservableHeading:
+        return fail(EkfCalCode::kAlignUnobservable);
+      case MisalignmentStatus::kIllConditioned:
+        return fail(EkfCalCode::kAlignIllConditioned);
+      case MisalignmentStatus::kNotConverged:
+        return fail(EkfCalCode::kAlignNotConverged);
+    }
+    model.rm = Quat<Scalar>(li_rm(align_.rm_rad));
+    model.rm.normalize();
+    SensorModel<Scalar> li;
+    if (canonicalize_li(model, &li) != ConversionStatus::kOk)
+      return fail(EkfCalCode::kNotLiRepresentable);
+    model = li;
+    aligned_ = true;
+  }
+  *out = model;
+  // Without the alignment step W is known only up to a rotation and Rm = I: not aligned.
+  CalibratorSolve r{true, 0, aligned_};
+  r.mag_noise_nT = static_cast<float>(ekf_.noise_nT());
+  // The alignment fit's residual (relative to F) as the attitude noise: it also holds the
+  // magnetometer noise over F, so the vector check's floor is conservative, never too tight.
+  if (aligned_) r.attitude_noise_deg = static_cast<float>(rad_to_deg(align_.residual_rms));
+  return r;
+}
+
+// Compiled once for the host with the scalar EKF (see the end of scalar_ekf.hpp).
+#ifdef MAGVEC_CORE_EKF_DOUBLE_COMPILED
+extern template class EkfCalibrator<double>;
+#endif
 
 }  // namespace magvec::core

@@ -230,97 +230,20 @@ class ScalarEkf {
 
   // Replaces the configuration and restarts the filter; counters and the noise estimate are
   // cleared.
-  void configure(const Config& config) noexcept {
-    cfg_ = config;
-    cfg_.init_samples = std::clamp(cfg_.init_samples, 16, kInitCapacity);
-    cfg_.init_min_samples = std::clamp(cfg_.init_min_samples, 16, cfg_.init_samples);
-    cfg_.iterations = std::max(cfg_.iterations, 1);
-    cfg_.nis_window = std::max(cfg_.nis_window, 10);
-    counters_ = EkfCounters{};
-    last_reset_ = EkfResetReason::kNone;
-    report_ = InitReport{};
-    scale_ = 0;
-    sigma_ = 0;
-    noise_prior_var_ = 0;
-    noise_prior_n_ = 0;
-    noise_n_ = 0;
-    noise_mean_ = 0;
-    noise_m2_ = 0;
-    use_fit_ = cfg_.init_mode == EkfInitMode::kQuadricFit;
-    x_.setZero();
-    x_.template head<9>() = flatten(cfg_.w0);
-    restart();
-  }
+  void configure(const Config& config) noexcept;
 
   // Restarts estimation (new initial fit or the configured start); keeps counters, scale and the
   // noise estimate.
-  void restart() noexcept {
-    initialised_ = false;
-    n_buf_ = 0;
-    target_ = cfg_.init_samples;
-    feat_info_.setZero();
-    feat_dirty_ = true;
-    lev_dirty_ = true;
-    tried_ = false;
-    changed_since_try_ = false;
-    logdet_at_try_ = 0;
-    window_n_ = 0;
-    window_gated_ = 0;
-    window_nis_sum_ = 0;
-    window_noise_n_ = 0;
-    window_noise_sum_ = 0;
-    window_noise_sum2_ = 0;
-    last_nis_ = 0;
-    // Until a start exists the covariance is "unknown" (unit variance in normalised units); the
-    // last state estimate is kept so model() still returns the best known calibration.
-    u_.setIdentity();
-    d_.setOnes();
-    if (!use_fit_ && scale_ > 0) start_given();
-  }
+  void restart() noexcept;
 
-  EkfStatus update(const Vec3<Scalar>& m_nT) noexcept {
-    return update(m_nT, cfg_.reference_field_nT);
-  }
+  EkfStatus update(const Vec3<Scalar>& m_nT) noexcept;
 
   // One sample: raw magnetometer reading m [nT] and the reference total field F [nT] at that time.
-  EkfStatus update(const Vec3<Scalar>& m_nT, Scalar f_ref_nT) noexcept {
-    using std::isfinite;
-    if (!m_nT.allFinite()) {
-      ++counters_.rejected_nonfinite;
-      return EkfStatus::kRejectedNonFinite;
-    }
-    if (!(isfinite(f_ref_nT) && f_ref_nT > 0)) {
-      ++counters_.rejected_reference;
-      return EkfStatus::kRejectedBadReference;
-    }
-    if (!(scale_ > 0)) {
-      scale_ = cfg_.field_scale_nT > 0 ? cfg_.field_scale_nT : f_ref_nT;
-      sigma_ = cfg_.noise_sigma_nT / scale_;
-      restart();
-    }
-    const Vec3<Scalar> m = m_nT / scale_;
-    const Scalar fn = f_ref_nT / scale_;
-    if (!m.allFinite()) {
-      ++counters_.rejected_nonfinite;
-      return EkfStatus::kRejectedNonFinite;
-    }
-    if (!initialised_) return collect(m, fn);
-    return filter_step(m, fn, fn * fn);
-  }
+  EkfStatus update(const Vec3<Scalar>& m_nT, Scalar f_ref_nT) noexcept;
 
   // Tries the initial fit now with the start-up set as it is (at least init_min_samples), e.g. at
   // the end of a recording shorter than the set. True when the filter is running.
-  bool try_start() noexcept {
-    if (initialised_ || !use_fit_) return initialised_;
-    if (n_buf_ < cfg_.init_min_samples) {
-      report_ = InitReport{};
-      report_.failure = EkfInitFailure::kTooFewSamples;
-      report_.samples = n_buf_;
-      return false;
-    }
-    if (tried_ && !changed_since_try_) return false;
-    return attempt_fit();
-  }
+  bool try_start() noexcept;
 
   bool initialised() const noexcept { return initialised_; }
   const EkfCounters& counters() const noexcept { return counters_; }
@@ -649,12 +572,7 @@ class ScalarEkf {
   // Quadric features of the unit direction u of a reading: the parameters of the exact model at a
   // sphere (W ~ I) see a sample through u u^T and u, so these 9 carry its information about the
   // shape and centre; a radial outlier adds nothing (directions only).
-  static Features features(const Vec3<Scalar>& u) noexcept {
-    Features f;
-    f << u(0) * u(0), u(1) * u(1), u(2) * u(2), u(0) * u(1), u(0) * u(2), u(1) * u(2), u(0), u(1),
-        u(2);
-    return f;
-  }
+  static Features features(const Vec3<Scalar>& u) noexcept;
   Features buffered_features(int j) const noexcept {
     return features(buf_m_.col(j) / buf_m_.col(j).norm());
   }
@@ -1082,5 +1000,114 @@ class ScalarEkf {
   Scalar window_nis_sum_{0};
   Scalar last_nis_{0};
 };
+
+template <typename Scalar, int kInitCapacity>
+void ScalarEkf<Scalar, kInitCapacity>::configure(const Config& config) noexcept {
+  cfg_ = config;
+  cfg_.init_samples = std::clamp(cfg_.init_samples, 16, kInitCapacity);
+  cfg_.init_min_samples = std::clamp(cfg_.init_min_samples, 16, cfg_.init_samples);
+  cfg_.iterations = std::max(cfg_.iterations, 1);
+  cfg_.nis_window = std::max(cfg_.nis_window, 10);
+  counters_ = EkfCounters{};
+  last_reset_ = EkfResetReason::kNone;
+  report_ = InitReport{};
+  scale_ = 0;
+  sigma_ = 0;
+  noise_prior_var_ = 0;
+  noise_prior_n_ = 0;
+  noise_n_ = 0;
+  noise_mean_ = 0;
+  noise_m2_ = 0;
+  use_fit_ = cfg_.init_mode == EkfInitMode::kQuadricFit;
+  x_.setZero();
+  x_.template head<9>() = flatten(cfg_.w0);
+  restart();
+}
+
+template <typename Scalar, int kInitCapacity>
+void ScalarEkf<Scalar, kInitCapacity>::restart() noexcept {
+  initialised_ = false;
+  n_buf_ = 0;
+  target_ = cfg_.init_samples;
+  feat_info_.setZero();
+  feat_dirty_ = true;
+  lev_dirty_ = true;
+  tried_ = false;
+  changed_since_try_ = false;
+  logdet_at_try_ = 0;
+  window_n_ = 0;
+  window_gated_ = 0;
+  window_nis_sum_ = 0;
+  window_noise_n_ = 0;
+  window_noise_sum_ = 0;
+  window_noise_sum2_ = 0;
+  last_nis_ = 0;
+  // Until a start exists the covariance is "unknown" (unit variance in normalised units); the
+  // last state estimate is kept so model() still returns the best known calibration.
+  u_.setIdentity();
+  d_.setOnes();
+  if (!use_fit_ && scale_ > 0) start_given();
+}
+
+template <typename Scalar, int kInitCapacity>
+EkfStatus ScalarEkf<Scalar, kInitCapacity>::update(const Vec3<Scalar>& m_nT) noexcept {
+  return update(m_nT, cfg_.reference_field_nT);
+}
+
+template <typename Scalar, int kInitCapacity>
+EkfStatus ScalarEkf<Scalar, kInitCapacity>::update(const Vec3<Scalar>& m_nT,
+                                                   Scalar f_ref_nT) noexcept {
+  using std::isfinite;
+  if (!m_nT.allFinite()) {
+    ++counters_.rejected_nonfinite;
+    return EkfStatus::kRejectedNonFinite;
+  }
+  if (!(isfinite(f_ref_nT) && f_ref_nT > 0)) {
+    ++counters_.rejected_reference;
+    return EkfStatus::kRejectedBadReference;
+  }
+  if (!(scale_ > 0)) {
+    scale_ = cfg_.field_scale_nT > 0 ? cfg_.field_scale_nT : f_ref_nT;
+    sigma_ = cfg_.noise_sigma_nT / scale_;
+    restart();
+  }
+  const Vec3<Scalar> m = m_nT / scale_;
+  const Scalar fn = f_ref_nT / scale_;
+  if (!m.allFinite()) {
+    ++counters_.rejected_nonfinite;
+    return EkfStatus::kRejectedNonFinite;
+  }
+  if (!initialised_) return collect(m, fn);
+  return filter_step(m, fn, fn * fn);
+}
+
+template <typename Scalar, int kInitCapacity>
+bool ScalarEkf<Scalar, kInitCapacity>::try_start() noexcept {
+  if (initialised_ || !use_fit_) return initialised_;
+  if (n_buf_ < cfg_.init_min_samples) {
+    report_ = InitReport{};
+    report_.failure = EkfInitFailure::kTooFewSamples;
+    report_.samples = n_buf_;
+    return false;
+  }
+  if (tried_ && !changed_since_try_) return false;
+  return attempt_fit();
+}
+
+template <typename Scalar, int kInitCapacity>
+typename ScalarEkf<Scalar, kInitCapacity>::Features ScalarEkf<Scalar, kInitCapacity>::features(
+    const Vec3<Scalar>& u) noexcept {
+  Features f;
+  f << u(0) * u(0), u(1) * u(1), u(2) * u(2), u(0) * u(1), u(0) * u(2), u(1) * u(2), u(0), u(1),
+      u(2);
+  return f;
+}
+
+// Compiled once for the host (firmware/core/src/inst_ekf_double.cpp, the magvec::core_ekf_double
+// library), as the batch calibrator is (see the end of batch_calibrator.hpp): the units that use
+// it only call it (when they link it: its compile definition).
+#ifdef MAGVEC_CORE_EKF_DOUBLE_COMPILED
+extern template class ScalarEkf<double>;
+#endif
 
 }  // namespace magvec::core

@@ -1243,8 +1243,13 @@ VfSigmas<Scalar> VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>
 // magvec::core_vector_<scalar> library): an instantiation of the filter costs minutes of compile
 // time, so the units that use it only call it. Its entry points are defined outside the class
 // because GCC instantiates in-class (implicitly inline) members for inlining even under `extern
-// template`.
+// template`. A unit sees the declaration when it links that library (the library's compile
+// definition); any other unit instantiates the filter itself.
+#ifdef MAGVEC_CORE_VECTOR_FLOAT_COMPILED
 extern template class VectorCalibrationFilter<float>;
+#endif
+#ifdef MAGVEC_CORE_VECTOR_DOUBLE_COMPILED
 extern template class VectorCalibrationFilter<double>;
+#endif
 
 }  // namespace magvec::core

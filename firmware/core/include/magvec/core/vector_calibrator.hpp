@@ -371,7 +371,11 @@ CalibratorAdd VectorCalibrator<Scalar, InitCapacity>::add(const MagSample<Scalar
 }
 
 // Compiled once per scalar with the filter (see the end of vector_calibration_filter.hpp).
+#ifdef MAGVEC_CORE_VECTOR_FLOAT_COMPILED
 extern template class VectorCalibrator<float>;
+#endif
+#ifdef MAGVEC_CORE_VECTOR_DOUBLE_COMPILED
 extern template class VectorCalibrator<double>;
+#endif
 
 }  // namespace magvec::core

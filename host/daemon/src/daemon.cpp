@@ -126,6 +126,7 @@ int Daemon::run() {
   store_->load();
   set_thread_stack_size();  // before the first thread (worker, LCM) is created
   worker_ = std::make_unique<SolveWorker>();
+  persist_worker_ = std::make_unique<PersistWorker>();
   realtime_hints(config);
   start_us_ = mono_us();
   open_session(config, true);
@@ -153,7 +154,9 @@ int Daemon::run() {
   devices_->flush(*this);
   flush_raw_batch();
   spdlog::info("stopping ({} samples)", mag_events_);
-  ep_->flush();  // the samples still inside the fusion horizon get their records
+  ep_->flush();                  // the samples still inside the fusion horizon get their records
+  persist_worker_->wait_idle();  // a write in progress ends (and is recorded) first
+  install_persist_results();
   shutdown_persist();
   publish_status();
   publish_health();
@@ -285,6 +288,7 @@ void Daemon::loop_session() {
     hand_over_solve();
     install_solve_results();
     check_auto_accept();
+    install_persist_results();
     if (ep_->pipeline()->state() != last_state_enum_) {
       last_state_enum_ = ep_->pipeline()->state();
       publish_status();
@@ -338,7 +342,7 @@ void Daemon::install_solve_results() {
   spdlog::info(
       "solve on the worker: {:.1f} ms ({}); meanwhile {} raw messages, worst processing of one "
       "(publish + pipeline) {} us (outside solves {} us)",
-      1e-3 * static_cast<double>(d->solve_us), d->result.ok ? "candidate" : "refused",
+      1e-3 * static_cast<double>(d->run_us), d->result.ok ? "candidate" : "refused",
       samples_during_solve_, worst_sample_us_during_solve_, worst_sample_us_);
   // Published and applied here, in the event order, so that a replay installs it at the same
   // sample (a stale result is ignored there too).
@@ -356,17 +360,50 @@ void Daemon::check_auto_accept() {
   spdlog::info("calibration applied: cal_id {} (validation intensity rms {:.3f} nT)", st.cal_id,
                st.validation_rms_nT);
   publish_status();
-  if (config_.calibration.auto_accept) persist(st, "auto-accept");
+  if (config_.calibration.auto_accept) persist_in_background(st, "auto-accept");
+}
+
+void Daemon::persist_in_background(const CalibrationStatus& st, const char* why) {
+  if (st.cal_id == 0) return;
+  const double offset_s = ep_->pipeline()->time_offset_s();
+  PersistWorker::Job job = [path = store_->path(), st, offset_s, why = std::string(why)] {
+    PersistOutcome o;
+    o.why = why;
+    o.ok = CalibrationStore::write(path, st, offset_s, why, &o.error);
+    if (o.ok) o.written = CalibrationStore::written(st, offset_s);
+    return o;
+  };
+  if (persist_worker_->submit(st.cal_id, std::move(job)))
+    spdlog::info("a write of an earlier calibration was superseded before it started");
+}
+
+void Daemon::install_persist_results() {
+  std::optional<PersistWorker::Done> d = persist_worker_->take_result();
+  if (!d) return;
+  const double ms = 1e-3 * static_cast<double>(d->run_us);
+  if (!d->result.ok) {
+    spdlog::error("persisting calibration {} failed ({:.1f} ms): {}", d->tag, ms, d->result.error);
+    return;
+  }
+  store_->mark_persisted(d->result.written);
+  spdlog::info("calibration {} persisted to {} ({}) in {:.1f} ms, off the acquisition thread",
+               d->tag, store_->path(), d->result.why, ms);
+  publish_status();
 }
 
 bool Daemon::persist(const CalibrationStatus& st, const char* why) {
   if (st.cal_id == 0) return false;
+  // One writer of the file at a time, in the order asked: a background write ends first.
+  persist_worker_->wait_idle();
+  install_persist_results();
   std::string error;
+  const std::uint64_t t0 = mono_us();
   if (!store_->save(st, ep_->pipeline()->time_offset_s(), why, &error)) {
     spdlog::error("persisting calibration {} failed: {}", st.cal_id, error);
     return false;
   }
-  spdlog::info("calibration {} persisted to {} ({})", st.cal_id, store_->path(), why);
+  spdlog::info("calibration {} persisted to {} ({}) in {:.1f} ms", st.cal_id, store_->path(), why,
+               1e-3 * static_cast<double>(mono_us() - t0));
   return true;
 }
 

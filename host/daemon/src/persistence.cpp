@@ -46,8 +46,8 @@ PersistedCalibration CalibrationStore::load() {
   return p;
 }
 
-bool CalibrationStore::save(const CalibrationStatus& st, double time_offset_s,
-                            const std::string& why, std::string* error) {
+bool CalibrationStore::write(const std::string& path, const CalibrationStatus& st,
+                             double time_offset_s, const std::string& why, std::string* error) {
   host::CalibrationFile f;
   f.model = st.active;
   // The loop's calibrators do not estimate the time offset: the one in use is kept.
@@ -62,16 +62,28 @@ bool CalibrationStore::save(const CalibrationStatus& st, double time_offset_s,
   f.provenance.magvec_version = kVersion;
   f.provenance.created_utc = host::utc_now_iso8601();
   try {
-    host::write_calibration_file(path_, f);
+    host::write_calibration_file(path, f);
   } catch (const std::exception& e) {
     if (error != nullptr) *error = e.what();
     return false;
   }
-  persisted_.present = true;
-  persisted_.model = st.active;
-  persisted_.cal_id = st.cal_id;
-  persisted_.time_offset_s = time_offset_s;
-  persisted_.output = st.output;
+  return true;
+}
+
+PersistedCalibration CalibrationStore::written(const CalibrationStatus& st, double time_offset_s) {
+  PersistedCalibration p;
+  p.present = true;
+  p.model = st.active;
+  p.cal_id = st.cal_id;
+  p.time_offset_s = time_offset_s;
+  p.output = st.output;
+  return p;
+}
+
+bool CalibrationStore::save(const CalibrationStatus& st, double time_offset_s,
+                            const std::string& why, std::string* error) {
+  if (!write(path_, st, time_offset_s, why, error)) return false;
+  mark_persisted(written(st, time_offset_s));
   return true;
 }
 

@@ -1,6 +1,7 @@
 // magvecd's wiring: configuration -> devices -> raw events published on LCM, then applied to the
 // EventPipeline (AttitudeBuffer + SensorLoop) -> records on LCM; commands on the command URL;
-// the calibrator's solve on a SolveWorker; the accepted calibration in the CalibrationStore;
+// the calibrator's solve on a SolveWorker; the accepted calibration in the CalibrationStore (an
+// auto-accepted one written on a PersistWorker);
 // sessions (SIGHUP reloads); systemd notifications. main() parses the arguments and runs this.
 #pragma once
 
@@ -9,12 +10,12 @@
 #include <memory>
 #include <string>
 
+#include "magvec/host/daemon/background_worker.hpp"
 #include "magvec/host/daemon/config.hpp"
 #include "magvec/host/daemon/devices.hpp"
 #include "magvec/host/daemon/event_pipeline.hpp"
 #include "magvec/host/daemon/lcm_link.hpp"
 #include "magvec/host/daemon/persistence.hpp"
-#include "magvec/host/daemon/solve_worker.hpp"
 
 namespace magvec::host::daemon {
 
@@ -57,7 +58,12 @@ class Daemon final : public EventHandler {
   void hand_over_solve();
   void install_solve_results();
   void check_auto_accept();
+  // Writes the calibration on this thread (the accept command, the end of the daemon).
   bool persist(const CalibrationStatus& st, const char* why);
+  // Writes it on the PersistWorker (auto-accept: the acquisition goes on meanwhile); the store
+  // learns of it in install_persist_results().
+  void persist_in_background(const CalibrationStatus& st, const char* why);
+  void install_persist_results();
   void shutdown_persist();
   void publish_status();
   void publish_status(const CalibrationStatus& st);
@@ -78,6 +84,7 @@ class Daemon final : public EventHandler {
   std::unique_ptr<Devices> devices_;
   std::unique_ptr<CalibrationStore> store_;
   std::unique_ptr<SolveWorker> worker_;
+  std::unique_ptr<PersistWorker> persist_worker_;
   // Forwards the records to the publisher of the current session (the EventPipeline outlives it).
   struct Sink final : hal::RecordSink {
     LcmPublisher* publisher{nullptr};

@@ -29,10 +29,17 @@ class CalibrationStore {
   // when it exists but cannot be read; the file is left untouched.
   PersistedCalibration load();
   // Writes `status`'s active calibration (cal_id, validation RMS, calibrator in the provenance)
-  // with `time_offset_s`; false (and *error) when the write failed, the previous file intact.
+  // with `time_offset_s` to `path`; false (and *error) when the write failed, the previous file
+  // intact. Touches no store: safe on another thread (PersistWorker), then mark_persisted().
+  static bool write(const std::string& path, const CalibrationStatus& status, double time_offset_s,
+                    const std::string& why, std::string* error);
+  // What write() put in the file, as persisted() reports it.
+  static PersistedCalibration written(const CalibrationStatus& status, double time_offset_s);
+  void mark_persisted(const PersistedCalibration& p) { persisted_ = p; }
+  // write() to path() and mark_persisted(), on the calling thread.
   bool save(const CalibrationStatus& status, double time_offset_s, const std::string& why,
             std::string* error);
-  // The calibration in the file (what load() read or save() wrote last).
+  // The calibration in the file (what load() read or save()/mark_persisted() recorded last).
   const PersistedCalibration& persisted() const noexcept { return persisted_; }
 
  private:

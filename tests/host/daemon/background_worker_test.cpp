@@ -1,8 +1,9 @@
-// SolveWorker (host/daemon solve_worker.hpp) and the solve off the acquisition path end to end:
-// a session whose solves run on the worker and are installed by SOLVE_RESULT events wherever they
-// land in the event order replays bit-identically from its log, and calibrates like the inline
-// path.
-#include "magvec/host/daemon/solve_worker.hpp"
+// BackgroundWorker (host/daemon background_worker.hpp): the hand-over (SolveWorker), the
+// calibration written off the calling thread (PersistWorker), and the solve off the acquisition
+// path end to end: a session whose solves run on the worker and are installed by SOLVE_RESULT
+// events wherever they land in the event order replays bit-identically from its log, and calibrates
+// like the inline path.
+#include "magvec/host/daemon/background_worker.hpp"
 
 #include <gtest/gtest.h>
 #include <unistd.h>
@@ -100,6 +101,63 @@ TEST(SolveWorker, DestructionWaitsForTheRunningJob) {
       std::this_thread::yield();
   }
   EXPECT_TRUE(finished.load());
+}
+
+// wait_idle() (the daemon's end, the accept command's write) returns once the job ran, not before.
+TEST(SolveWorker, WaitIdleReturnsOnceTheJobRan) {
+  SolveWorker w;
+  std::atomic<bool> finished{false};
+  w.submit(1, [&] {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    finished = true;
+    return SolveResult{};
+  });
+  w.wait_idle();
+  EXPECT_TRUE(finished.load());
+  EXPECT_FALSE(w.busy());
+  ASSERT_TRUE(w.take_result().has_value());
+  w.wait_idle();  // idle already: returns at once
+}
+
+// The auto-accepted calibration is written (atomically, fsync'd) on the worker's thread, and the
+// outcome says what is now in the file, which loads back.
+TEST(PersistWorker, WritesTheCalibrationOnItsOwnThread) {
+  const std::filesystem::path dir = std::filesystem::temp_directory_path() /
+                                    ("magvec_persist_worker_" + std::to_string(::getpid()));
+  std::filesystem::remove_all(dir);
+  std::filesystem::create_directories(dir);
+  CalibrationStore store(dir.string());
+  CalibrationStatus st;
+  st.calibrator = "li";
+  st.cal_id = 4;
+  st.active.o = core::Vec3<double>(12.5, -3.25, 0.5);
+  std::thread::id writer;
+  PersistWorker w;
+  w.submit(st.cal_id, [&writer, path = store.path(), st] {
+    writer = std::this_thread::get_id();
+    PersistOutcome o;
+    o.why = "test";
+    o.ok = CalibrationStore::write(path, st, 0.02, o.why, &o.error);
+    if (o.ok) o.written = CalibrationStore::written(st, 0.02);
+    return o;
+  });
+  w.wait_idle();
+  std::optional<PersistWorker::Done> d = w.take_result();
+  ASSERT_TRUE(d.has_value());
+  ASSERT_TRUE(d->result.ok) << d->result.error;
+  EXPECT_NE(writer, std::this_thread::get_id());
+  EXPECT_EQ(d->tag, 4u);
+  EXPECT_EQ(d->result.written.cal_id, 4u);
+  EXPECT_FALSE(store.persisted().present);  // the store learns of it from the outcome
+  store.mark_persisted(d->result.written);
+  EXPECT_EQ(store.persisted().cal_id, 4u);
+  CalibrationStore again(dir.string());
+  const PersistedCalibration p = again.load();
+  EXPECT_TRUE(p.present);
+  EXPECT_EQ(p.cal_id, 4u);
+  EXPECT_DOUBLE_EQ(p.model.o.x(), 12.5);
+  EXPECT_DOUBLE_EQ(p.time_offset_s, 0.02);
+  std::filesystem::remove_all(dir);
 }
 
 // Publishes (into an LCM log) and applies, as magvecd does; the solve runs on a SolveWorker and

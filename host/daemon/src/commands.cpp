@@ -25,10 +25,11 @@ CommandOutcome run_command(const std::string& c, const CommandContext& ctx,
       r.ok = true;
       r.message = "calibration " + std::to_string(st.cal_id) + " is already persisted";
     } else {
-      r.ok = act.persist(st);
+      act.persist(st);
+      r.ok = true;
+      r.reply_when_persisted = true;
       r.message =
-          r.ok ? "calibration " + std::to_string(st.cal_id) + " persisted to " + ctx.persisted_path
-               : "persisting failed (see the daemon log)";
+          "calibration " + std::to_string(st.cal_id) + " persisted to " + ctx.persisted_path;
     }
     return r;
   }

@@ -381,14 +381,31 @@ void Daemon::install_persist_results() {
   std::optional<PersistWorker::Done> d = persist_worker_->take_result();
   if (!d) return;
   const double ms = 1e-3 * static_cast<double>(d->run_us);
-  if (!d->result.ok) {
+  if (d->result.ok) {
+    store_->mark_persisted(d->result.written);
+    spdlog::info("calibration {} persisted to {} ({}) in {:.1f} ms, off the acquisition thread",
+                 d->tag, store_->path(), d->result.why, ms);
+    publish_status();
+  } else {
     spdlog::error("persisting calibration {} failed ({:.1f} ms): {}", d->tag, ms, d->result.error);
-    return;
   }
-  store_->mark_persisted(d->result.written);
-  spdlog::info("calibration {} persisted to {} ({}) in {:.1f} ms, off the acquisition thread",
-               d->tag, store_->path(), d->result.why, ms);
-  publish_status();
+  // The accept commands waiting: this write was theirs, or a newer calibration's that replaced
+  // theirs before it started (the file then holds the newer one, and the reply says so).
+  for (PendingAccept& a : pending_accepts_) {
+    magvec_lcm::command_reply& r = a.reply;
+    if (!d->result.ok) {
+      r.ok = false;
+      r.message = "persisting calibration " + std::to_string(d->tag) +
+                  " failed: " + d->result.error + " (the previous file is intact)";
+    } else if (d->tag != a.cal_id) {
+      r.message = "calibration " + std::to_string(d->tag) + " (newer than " +
+                  std::to_string(a.cal_id) + ") persisted to " + store_->path();
+    }
+    r.state = to_lcm(ep_->pipeline()->status(), last_t_us_, store_->persisted().cal_id);
+    commands_->reply(config_.lcm.channels.reply, r);
+    publisher_->publish(config_.lcm.channels.reply, r);  // a recording shows it, as on_command
+  }
+  pending_accepts_.clear();
 }
 
 bool Daemon::persist(const CalibrationStatus& st, const char* why) {
@@ -482,7 +499,9 @@ void Daemon::on_command(const magvec_lcm::command& cmd) {
   ctx.samples = mag_events_;
   CommandActions act;
   act.start_calibration = [this] { event(start_calibration_event(++sequence_)); };
-  act.persist = [this](const CalibrationStatus& st) { return persist(st, "accept command"); };
+  act.persist = [this](const CalibrationStatus& st) {
+    persist_in_background(st, "accept command");
+  };
   act.set_active = [this](const core::SensorModel<double>& m, std::uint32_t id, double offset_s,
                           const OutputQuality& output) {
     event(set_active_event(++sequence_, m, id, offset_s, output));
@@ -494,6 +513,10 @@ void Daemon::on_command(const magvec_lcm::command& cmd) {
   r.message = out.message;
   r.state = to_lcm(p->status(), last_t_us_, store_->persisted().cal_id);
   if (out.state_changed) publish_status();
+  if (out.reply_when_persisted) {
+    pending_accepts_.push_back(PendingAccept{r, ctx.status.cal_id});
+    return;
+  }
   commands_->reply(config_.lcm.channels.reply, r);
   // Also on the data URL, so that a recording shows what the operator did.
   publisher_->publish(config_.lcm.channels.reply, r);

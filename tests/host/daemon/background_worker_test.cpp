@@ -160,6 +160,29 @@ TEST(PersistWorker, WritesTheCalibrationOnItsOwnThread) {
   std::filesystem::remove_all(dir);
 }
 
+// A write that fails (here: the state directory is gone) comes back as a failed outcome with its
+// reason, and nothing claims the calibration persisted.
+TEST(PersistWorker, AFailedWriteComesBackWithItsReason) {
+  const std::filesystem::path dir = std::filesystem::temp_directory_path() /
+                                    ("magvec_persist_gone_" + std::to_string(::getpid()));
+  std::filesystem::remove_all(dir);
+  CalibrationStatus st;
+  st.cal_id = 2;
+  PersistWorker w;
+  w.submit(st.cal_id, [path = (dir / "cal.json").string(), st] {
+    PersistOutcome o;
+    o.ok = CalibrationStore::write(path, st, 0, "test", &o.error);
+    return o;
+  });
+  w.wait_idle();
+  std::optional<PersistWorker::Done> d = w.take_result();
+  ASSERT_TRUE(d.has_value());
+  EXPECT_FALSE(d->result.ok);
+  EXPECT_FALSE(d->result.error.empty());
+  EXPECT_FALSE(d->result.written.present);
+  EXPECT_FALSE(std::filesystem::exists(dir));
+}
+
 // Publishes (into an LCM log) and applies, as magvecd does; the solve runs on a SolveWorker and
 // its result is installed when it arrives, at whatever sample that is.
 struct LiveDaemon : test::LoggedDaemon {

@@ -13,8 +13,9 @@
 namespace magvec::host::daemon {
 
 struct CommandActions {
-  std::function<void()> start_calibration;                // START_CALIBRATION pipeline event
-  std::function<bool(const CalibrationStatus&)> persist;  // write cal.json; false on failure
+  std::function<void()> start_calibration;  // START_CALIBRATION pipeline event
+  // Starts writing cal.json (on the daemon's PersistWorker: the acquisition goes on meanwhile).
+  std::function<void(const CalibrationStatus&)> persist;
   // SET_ACTIVE pipeline event (model, cal_id, time_offset_s, output quality)
   std::function<void(const core::SensorModel<double>&, std::uint32_t, double, const OutputQuality&)>
       set_active;
@@ -32,6 +33,9 @@ struct CommandOutcome {
   bool ok{false};
   std::string message;
   bool state_changed{false};  // start/revert/status: publish the calibration state
+  // accept: the reply waits for the end of the write it started; `message` is the reply when the
+  // write succeeds (a failed one is answered with its error).
+  bool reply_when_persisted{false};
 };
 
 CommandOutcome run_command(const std::string& command, const CommandContext& ctx,

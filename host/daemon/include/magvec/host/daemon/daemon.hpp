@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "magvec/host/daemon/background_worker.hpp"
 #include "magvec/host/daemon/config.hpp"
@@ -58,10 +59,11 @@ class Daemon final : public EventHandler {
   void hand_over_solve();
   void install_solve_results();
   void check_auto_accept();
-  // Writes the calibration on this thread (the accept command, the end of the daemon).
+  // Writes the calibration on this thread (the end of the daemon).
   bool persist(const CalibrationStatus& st, const char* why);
-  // Writes it on the PersistWorker (auto-accept: the acquisition goes on meanwhile); the store
-  // learns of it in install_persist_results().
+  // Writes it on the PersistWorker (auto-accept, the accept command: the acquisition goes on
+  // meanwhile); the store learns of it, and the accept commands waiting for it get their reply,
+  // in install_persist_results().
   void persist_in_background(const CalibrationStatus& st, const char* why);
   void install_persist_results();
   void shutdown_persist();
@@ -85,6 +87,13 @@ class Daemon final : public EventHandler {
   std::unique_ptr<CalibrationStore> store_;
   std::unique_ptr<SolveWorker> worker_;
   std::unique_ptr<PersistWorker> persist_worker_;
+  // accept commands whose reply waits for the end of the write they started (their success reply
+  // prepared, and the calibration they asked for).
+  struct PendingAccept {
+    magvec_lcm::command_reply reply;
+    std::uint32_t cal_id{0};
+  };
+  std::vector<PendingAccept> pending_accepts_;
   // Forwards the records to the publisher of the current session (the EventPipeline outlives it).
   struct Sink final : hal::RecordSink {
     LcmPublisher* publisher{nullptr};

@@ -28,11 +28,11 @@ std::uint64_t mono_us() {
   return drivers::monotonic_us();
 }
 
-// Stack of every thread created after this (the solve worker, LCM's receive thread of the command
-// link): mlockall(MCL_FUTURE) faults in and locks each whole stack, and glibc's default of 8 MiB
-// each was 16 of the daemon's 30 MB peak RSS (and the page faults part of its start-up CPU).
-// Measured without mlockall: a li solve that produced a candidate touched 40 KiB of its thread's
-// stack, the LCM thread 12 KiB; 1 MiB leaves a wide margin.
+// Stack of every thread created after this (the solve and persist workers, LCM's receive thread of
+// the command link): mlockall(MCL_FUTURE) faults in and locks each whole stack, and glibc's default
+// of 8 MiB each was 16 of the daemon's 30 MB peak RSS (and the page faults part of its start-up
+// CPU). Measured without mlockall: a li solve that produced a candidate touched 40 KiB of its
+// thread's stack, the LCM thread 12 KiB; 1 MiB leaves a wide margin.
 constexpr std::size_t kThreadStackBytes = std::size_t{1} << 20;
 
 void set_thread_stack_size() {

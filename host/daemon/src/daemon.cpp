@@ -389,9 +389,16 @@ void Daemon::install_persist_results() {
   } else {
     spdlog::error("persisting calibration {} failed ({:.1f} ms): {}", d->tag, ms, d->result.error);
   }
-  // The accept commands waiting: this write was theirs, or a newer calibration's that replaced
-  // theirs before it started (the file then holds the newer one, and the reply says so).
+  // The accept commands waiting for this write: those of its calibration, and of older ones whose
+  // write it replaced before that started (the file then holds the newer one, and the reply says
+  // so). An accept of a newer calibration waits on for its own write (this one was running when
+  // it came).
+  std::vector<PendingAccept> later;
   for (PendingAccept& a : pending_accepts_) {
+    if (a.cal_id > d->tag) {
+      later.push_back(std::move(a));
+      continue;
+    }
     magvec_lcm::command_reply& r = a.reply;
     if (!d->result.ok) {
       r.ok = false;
@@ -405,7 +412,7 @@ void Daemon::install_persist_results() {
     commands_->reply(config_.lcm.channels.reply, r);
     publisher_->publish(config_.lcm.channels.reply, r);  // a recording shows it, as on_command
   }
-  pending_accepts_.clear();
+  pending_accepts_ = std::move(later);
 }
 
 bool Daemon::persist(const CalibrationStatus& st, const char* why) {

@@ -367,11 +367,7 @@ void Daemon::persist_in_background(const CalibrationStatus& st, const char* why)
   if (st.cal_id == 0) return;
   const double offset_s = ep_->pipeline()->time_offset_s();
   PersistWorker::Job job = [path = store_->path(), st, offset_s, why = std::string(why)] {
-    PersistOutcome o;
-    o.why = why;
-    o.ok = CalibrationStore::write(path, st, offset_s, why, &o.error);
-    if (o.ok) o.written = CalibrationStore::written(st, offset_s);
-    return o;
+    return CalibrationStore::write(path, st, offset_s, why);
   };
   if (persist_worker_->submit(st.cal_id, std::move(job)))
     spdlog::info("a write of an earlier calibration was superseded before it started");

@@ -46,8 +46,10 @@ PersistedCalibration CalibrationStore::load() {
   return p;
 }
 
-bool CalibrationStore::write(const std::string& path, const CalibrationStatus& st,
-                             double time_offset_s, const std::string& why, std::string* error) {
+PersistOutcome CalibrationStore::write(const std::string& path, const CalibrationStatus& st,
+                                       double time_offset_s, const std::string& why) {
+  PersistOutcome o;
+  o.why = why;
   host::CalibrationFile f;
   f.model = st.active;
   // The loop's calibrators do not estimate the time offset: the one in use is kept.
@@ -64,26 +66,26 @@ bool CalibrationStore::write(const std::string& path, const CalibrationStatus& s
   try {
     host::write_calibration_file(path, f);
   } catch (const std::exception& e) {
-    if (error != nullptr) *error = e.what();
-    return false;
+    o.error = e.what();
+    return o;
   }
-  return true;
-}
-
-PersistedCalibration CalibrationStore::written(const CalibrationStatus& st, double time_offset_s) {
-  PersistedCalibration p;
-  p.present = true;
-  p.model = st.active;
-  p.cal_id = st.cal_id;
-  p.time_offset_s = time_offset_s;
-  p.output = st.output;
-  return p;
+  o.ok = true;
+  o.written.present = true;
+  o.written.model = st.active;
+  o.written.cal_id = st.cal_id;
+  o.written.time_offset_s = time_offset_s;
+  o.written.output = st.output;
+  return o;
 }
 
 bool CalibrationStore::save(const CalibrationStatus& st, double time_offset_s,
                             const std::string& why, std::string* error) {
-  if (!write(path_, st, time_offset_s, why, error)) return false;
-  mark_persisted(written(st, time_offset_s));
+  const PersistOutcome o = write(path_, st, time_offset_s, why);
+  if (!o.ok) {
+    if (error != nullptr) *error = o.error;
+    return false;
+  }
+  mark_persisted(o.written);
   return true;
 }
 

@@ -135,11 +135,7 @@ TEST(PersistWorker, WritesTheCalibrationOnItsOwnThread) {
   PersistWorker w;
   w.submit(st.cal_id, [&writer, path = store.path(), st] {
     writer = std::this_thread::get_id();
-    PersistOutcome o;
-    o.why = "test";
-    o.ok = CalibrationStore::write(path, st, 0.02, o.why, &o.error);
-    if (o.ok) o.written = CalibrationStore::written(st, 0.02);
-    return o;
+    return CalibrationStore::write(path, st, 0.02, "test");
   });
   w.wait_idle();
   std::optional<PersistWorker::Done> d = w.take_result();
@@ -170,9 +166,7 @@ TEST(PersistWorker, AFailedWriteComesBackWithItsReason) {
   st.cal_id = 2;
   PersistWorker w;
   w.submit(st.cal_id, [path = (dir / "cal.json").string(), st] {
-    PersistOutcome o;
-    o.ok = CalibrationStore::write(path, st, 0, "test", &o.error);
-    return o;
+    return CalibrationStore::write(path, st, 0, "test");
   });
   w.wait_idle();
   std::optional<PersistWorker::Done> d = w.take_result();

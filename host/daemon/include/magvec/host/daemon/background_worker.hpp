@@ -139,13 +139,6 @@ class BackgroundWorker {
 
 using SolveWorker = BackgroundWorker<SolveResult>;
 
-// The outcome of writing the accepted calibration (CalibrationStore::write).
-struct PersistOutcome {
-  bool ok{false};
-  std::string error;  // when !ok
-  PersistedCalibration written{};
-  std::string why;  // what asked for it ("auto-accept", ...)
-};
 using PersistWorker = BackgroundWorker<PersistOutcome>;
 
 }  // namespace magvec::host::daemon

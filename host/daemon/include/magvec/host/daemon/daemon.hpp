@@ -1,7 +1,7 @@
 // magvecd's wiring: configuration -> devices -> raw events published on LCM, then applied to the
 // EventPipeline (AttitudeBuffer + SensorLoop) -> records on LCM; commands on the command URL;
-// the calibrator's solve on a SolveWorker; the accepted calibration in the CalibrationStore (an
-// auto-accepted one written on a PersistWorker);
+// the calibrator's solve on a SolveWorker; the accepted calibration in the CalibrationStore
+// (written on a PersistWorker);
 // sessions (SIGHUP reloads); systemd notifications. main() parses the arguments and runs this.
 #pragma once
 

@@ -20,6 +20,14 @@ struct PersistedCalibration {
   OutputQuality output{};   // cal.json output (absent: aligned, sigmas not known)
 };
 
+// The outcome of writing a calibration (CalibrationStore::write).
+struct PersistOutcome {
+  bool ok{false};
+  std::string error;               // when !ok
+  PersistedCalibration written{};  // when ok: what the file now holds
+  std::string why;                 // what asked for it ("auto-accept", ...)
+};
+
 class CalibrationStore {
  public:
   explicit CalibrationStore(std::string state_dir);
@@ -29,12 +37,10 @@ class CalibrationStore {
   // when it exists but cannot be read; the file is left untouched.
   PersistedCalibration load();
   // Writes `status`'s active calibration (cal_id, validation RMS, calibrator in the provenance)
-  // with `time_offset_s` to `path`; false (and *error) when the write failed, the previous file
-  // intact. Touches no store: safe on another thread (PersistWorker), then mark_persisted().
-  static bool write(const std::string& path, const CalibrationStatus& status, double time_offset_s,
-                    const std::string& why, std::string* error);
-  // What write() put in the file, as persisted() reports it.
-  static PersistedCalibration written(const CalibrationStatus& status, double time_offset_s);
+  // with `time_offset_s` to `path`; on failure the outcome's error, the previous file intact.
+  // Touches no store: safe on another thread (PersistWorker), then mark_persisted(written).
+  static PersistOutcome write(const std::string& path, const CalibrationStatus& status,
+                              double time_offset_s, const std::string& why);
   void mark_persisted(const PersistedCalibration& p) { persisted_ = p; }
   // write() to path() and mark_persisted(), on the calling thread.
   bool save(const CalibrationStatus& status, double time_offset_s, const std::string& why,

@@ -608,7 +608,7 @@ OneStepSolution<Scalar> BatchCalibrator<Scalar, Capacity>::refit_one_step(
   return OneStepFit<Scalar>::solve(store_, normalization(), from.li, from.h_n_nT, o);
 }
 
-// Compiled once for the host's capacities (firmware/core/src/inst_batch_calibrator_double_*.cpp,
+// Compiled once for the host's capacities (firmware/core/src/inst_batch_calibrator_double.cpp,
 // the magvec::core_batch_double library): a unit that instantiates the batch solve costs about
 // two minutes of compile time, so the units that use these only call it. solve() and
 // refit_one_step() are defined outside the class because GCC instantiates in-class (implicitly

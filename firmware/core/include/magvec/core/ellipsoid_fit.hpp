@@ -21,6 +21,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <limits>
+#include <type_traits>
 
 #include "magvec/core/sample_store.hpp"
 #include "magvec/core/sensor_model.hpp"
@@ -310,8 +311,8 @@ class EllipsoidFit {
 // not flagged as outliers, with A = W^-1 = Ks Ko parameterised by its six structural non-zeros
 // (rows x: (0,0); y: (1,0),(1,1),(1,2); z: (2,0),(2,2)) and the offset. Returns the refined
 // solution (status kNotConverged keeps the last iterate).
-template <typename Scalar, std::size_t Capacity>
-EllipsoidSolution<Scalar> refine_ellipsoid_geometric(const SampleStore<Scalar, Capacity>& store,
+template <typename Scalar>
+EllipsoidSolution<Scalar> refine_ellipsoid_geometric(SampleView<std::type_identity_t<Scalar>> store,
                                                      const Normalization<Scalar>& norm,
                                                      const EllipsoidSolution<Scalar>& init,
                                                      int max_iterations = 30) noexcept {

@@ -22,6 +22,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <limits>
+#include <type_traits>
 #include <utility>
 
 #include "magvec/core/ellipsoid_fit.hpp"
@@ -121,8 +122,8 @@ bool usable(const StoredSample<Scalar>& s) noexcept {
 // Closed-form start: u_i^T X h~_i = const is linear in X = Rm^T (up to scale); X is the smallest
 // eigenvector of the centred 9x9 scatter of vec(u_i h~_i^T), projected onto SO(3). Returns false
 // when that eigenvector is not well separated (degenerate attitudes).
-template <typename Scalar, std::size_t Capacity>
-bool rm_linear_start(const SampleStore<Scalar, Capacity>& store, const Mat3<Scalar>& w,
+template <typename Scalar>
+bool rm_linear_start(SampleView<std::type_identity_t<Scalar>> store, const Mat3<Scalar>& w,
                      const Vec3<Scalar>& o, Vec3<Scalar>* ang) noexcept {
   Mat<Scalar, 9, 9> c = Mat<Scalar, 9, 9>::Zero();
   Vec<Scalar, 9> sum = Vec<Scalar, 9>::Zero();
@@ -200,9 +201,9 @@ void assess_angles(const Mat3<Scalar>& n_aa, Scalar sigma2, const Vec3<Scalar>& 
 }  // namespace detail
 
 // Li's plane compression in its O(N) form. w, o: sensor model from the ellipsoid fit.
-template <typename Scalar, std::size_t Capacity>
+template <typename Scalar>
 MisalignmentSolution<Scalar> plane_compression(
-    const SampleStore<Scalar, Capacity>& store, const Mat3<Scalar>& w, const Vec3<Scalar>& o,
+    SampleView<std::type_identity_t<Scalar>> store, const Mat3<Scalar>& w, const Vec3<Scalar>& o,
     const MisalignmentOptions<Scalar>& opt = {}) noexcept {
   MisalignmentSolution<Scalar> out;
   out.heading_fixed = opt.fix_heading;
@@ -283,8 +284,8 @@ MisalignmentSolution<Scalar> plane_compression(
 
 // Joint fit of Rm and the field direction/vector: r_i = R_i^T Rm^T h~_i - d, d a free 3-vector
 // (h_n = d * mean F). Gauss-Newton on 6 parameters, streaming normal equations.
-template <typename Scalar, std::size_t Capacity>
-MisalignmentSolution<Scalar> joint_rm_hn(const SampleStore<Scalar, Capacity>& store,
+template <typename Scalar>
+MisalignmentSolution<Scalar> joint_rm_hn(SampleView<std::type_identity_t<Scalar>> store,
                                          const Mat3<Scalar>& w, const Vec3<Scalar>& o,
                                          const MisalignmentOptions<Scalar>& opt = {}) noexcept {
   constexpr int kP = 6;

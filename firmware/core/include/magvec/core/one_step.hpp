@@ -155,9 +155,7 @@ class OneStepFit {
   };
 
   // start: two-step (or prior) Li parameters (Kof in nT); d_start: direction of h_n (any length).
-  template <std::size_t Capacity>
-  static OneStepSolution<Scalar> solve(const SampleStore<Scalar, Capacity>& store,
-                                       const Normalization<Scalar>& norm,
+  static OneStepSolution<Scalar> solve(SampleView<Scalar> store, const Normalization<Scalar>& norm,
                                        const LiParams<Scalar>& start, const Vec3<Scalar>& d_start,
                                        const OneStepOptions<Scalar>& opt) noexcept {
     OneStepSolution<Scalar> out;
@@ -300,10 +298,9 @@ class OneStepFit {
   // step component is below 1e-4 of its 1-sigma (or the numerical tolerance), or when no step
   // lowers the cost and the Gauss-Newton predicted decrease is below 1e-6 in chi^2 units: both
   // criteria are relative to the noise. On return *sums holds the pass at *p (weights at *p).
-  template <std::size_t Capacity>
-  static bool minimise(const SampleStore<Scalar, Capacity>& store,
-                       const Normalization<Scalar>& norm, const OneStepOptions<Scalar>& opt,
-                       Scalar sm, Scalar sa, Params* p, PassSums* sums, int* iterations) noexcept {
+  static bool minimise(SampleView<Scalar> store, const Normalization<Scalar>& norm,
+                       const OneStepOptions<Scalar>& opt, Scalar sm, Scalar sa, Params* p,
+                       PassSums* sums, int* iterations) noexcept {
     constexpr int kMaxReweights = 20;
     bool converged = false;
     *iterations = 0;
@@ -322,8 +319,7 @@ class OneStepFit {
 
   // One Levenberg-Marquardt run with the weights frozen at `weights`. *settled: the first step
   // was already negligible (the run started at its optimum).
-  template <std::size_t Capacity>
-  static bool run_lm(const SampleStore<Scalar, Capacity>& store, const Normalization<Scalar>& norm,
+  static bool run_lm(SampleView<Scalar> store, const Normalization<Scalar>& norm,
                      const OneStepOptions<Scalar>& opt, Scalar sm, Scalar sa, const Params& weights,
                      Params* p, PassSums* sums, int* iterations, bool* settled) noexcept {
     const Scalar sa2 = sa * sa;
@@ -395,10 +391,9 @@ class OneStepFit {
 
   // One pass over the samples: normal matrix, gradient, chi^2, variance-component sums and the
   // histogram of |r_w|^2. Public for benchmarks and tests.
-  template <std::size_t Capacity>
-  static PassSums pass(const SampleStore<Scalar, Capacity>& store,
-                       const Normalization<Scalar>& norm, const Params& prm, const Params& wprm,
-                       Scalar sm, Scalar sa2, AttitudeNoiseModel model) noexcept {
+  static PassSums pass(SampleView<Scalar> store, const Normalization<Scalar>& norm,
+                       const Params& prm, const Params& wprm, Scalar sm, Scalar sa2,
+                       AttitudeNoiseModel model) noexcept {
     using std::cos;
     using std::sin;
     PassSums out;

@@ -131,10 +131,31 @@ class SampleStore {
     return samples_.data()[i];
   }
   StoredSample<Scalar>& operator[](std::size_t i) noexcept { return samples_.data()[i]; }
+  const StoredSample<Scalar>* data() const noexcept { return samples_.data(); }
 
  private:
   detail::StoreBuffer<StoredSample<Scalar>, Capacity> samples_{};
   std::size_t size_{0};
+};
+
+// Read-only view of a store's samples, whatever its capacity. The batch solvers (ellipsoid
+// refinement, misalignment, one-step fit) take this view, so each is compiled once per scalar
+// type instead of once per store capacity (a one-step fit costs about a minute of compile time).
+template <typename Scalar>
+class SampleView {
+ public:
+  SampleView(const StoredSample<Scalar>* data, std::size_t size) noexcept
+      : data_(data), size_(size) {}
+  template <std::size_t Capacity>
+  SampleView(const SampleStore<Scalar, Capacity>& store) noexcept  // NOLINT: a store is a view
+      : data_(store.data()), size_(store.size()) {}
+
+  std::size_t size() const noexcept { return size_; }
+  const StoredSample<Scalar>& operator[](std::size_t i) const noexcept { return data_[i]; }
+
+ private:
+  const StoredSample<Scalar>* data_;
+  std::size_t size_;
 };
 
 }  // namespace magvec::core

@@ -1,4 +1,0 @@
-// BatchCalibrator<double, 64>, compiled once for the host (see the end of batch_calibrator.hpp).
-#include "magvec/core/batch_calibrator.hpp"
-
-template class magvec::core::BatchCalibrator<double, 64>;

@@ -5,7 +5,14 @@
 #include <cstdlib>
 #include <new>
 
-#if defined(__SANITIZE_ADDRESS__)
+// ASan owns malloc: interposing on it runs before the runtime is initialised. GCC says so with
+// __SANITIZE_ADDRESS__, clang with __has_feature(address_sanitizer).
+#if defined(__has_feature)
+#if __has_feature(address_sanitizer)
+#define MAGVEC_ASAN 1
+#endif
+#endif
+#if defined(__SANITIZE_ADDRESS__) || defined(MAGVEC_ASAN)
 #define MAGVEC_COUNT_MALLOC 0
 #else
 #define MAGVEC_COUNT_MALLOC 1

@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <limits>
 #include <memory>
 #include <random>
 
@@ -10,6 +11,9 @@
 
 namespace magvec::core {
 namespace {
+
+// Double constants: <cmath>'s NAN and INFINITY are floats (clang: -Wdouble-promotion).
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 using namespace test_setup;
 using Calibrator = BatchCalibrator<double, 1024>;
@@ -30,11 +34,11 @@ TEST(BatchCalibrator, LevelOnlyDataGetsTheUnobservableHeadingVerdict) {
 TEST(BatchCalibrator, TooFewAndNonFiniteSamplesAreCounted) {
   auto cal = std::make_unique<Calibrator>();
   const Mat3<double> r = Mat3<double>::Identity();
-  EXPECT_EQ(cal->add_sample(Vec3<double>(NAN, 1, 1), 50000, r), AddStatus::kSkippedNonFinite);
-  EXPECT_EQ(cal->add_sample(Vec3<double>(1, 1, 1), NAN, r),
+  EXPECT_EQ(cal->add_sample(Vec3<double>(kNaN, 1, 1), 50000, r), AddStatus::kSkippedNonFinite);
+  EXPECT_EQ(cal->add_sample(Vec3<double>(1, 1, 1), kNaN, r),
             AddStatus::kSkippedNonFinite);  // no default F
   Mat3<double> bad = r;
-  bad(0, 0) = NAN;
+  bad(0, 0) = kNaN;
   EXPECT_EQ(cal->add_sample(Vec3<double>(1, 1, 1), 50000, bad), AddStatus::kSkippedNonFinite);
   EXPECT_EQ(cal->add_sample(Vec3<double>(20000, 20000, 40000), 50000, r), AddStatus::kAccepted);
   const BatchResult<double> res = cal->solve();
@@ -50,7 +54,7 @@ TEST(BatchCalibrator, ConstantFieldFromConfigAndEllipsoidOnlyMethod) {
   auto cal = std::make_unique<Calibrator>(cfg);
   const LiParams<double> t = paper_li();
   for (const Sample& s : simulate(from_li(t), paper_h_n(), random_attitudes(60, rng), 0, 0, rng)) {
-    ASSERT_EQ(cal->add_sample(s.m, NAN), AddStatus::kAccepted);
+    ASSERT_EQ(cal->add_sample(s.m, kNaN), AddStatus::kAccepted);
   }
   const BatchResult<double> r = cal->solve(BatchMethod::kEllipsoidOnly);
   ASSERT_EQ(r.verdict, Verdict::kOk) << verdict_name(r.verdict);
@@ -96,7 +100,7 @@ TEST(BatchCalibrator, SpikesAndDropoutsAreRejectedAndCounted) {
         ++spikes;
       }
       if (i % 50 == 11) {  // 2 % dropouts
-        m(1) = NAN;
+        m(1) = kNaN;
         ++drops;
       }
       dirty->add_sample(m, s.f, s.r_meas);

@@ -7,6 +7,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <limits>
 #include <memory>
 #include <random>
 
@@ -17,6 +18,10 @@
 
 namespace magvec::core {
 namespace {
+
+// Double constants: <cmath>'s NAN and INFINITY are floats (clang: -Wdouble-promotion).
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+constexpr double kInf = std::numeric_limits<double>::infinity();
 
 using Cal = BatchLiCalibrator<double, 512>;
 constexpr double kDeg = kPi<double> / 180.0;
@@ -111,12 +116,12 @@ TEST(BatchLiCalibrator, HeadingOnlyManoeuvreIsRefusedWithTheVerdictCode) {
 TEST(BatchLiCalibrator, BadSamplesAreRejectedAndBeginClears) {
   auto cal = std::make_unique<Cal>(config());
   const Mat3<double> r = Mat3<double>::Identity();
-  EXPECT_EQ(cal->add(Vec3<double>(NAN, 0, 0), 50000, &r), CalibratorAdd::kRejected);
-  EXPECT_EQ(cal->add(Vec3<double>(1e4, 0, 0), NAN, &r), CalibratorAdd::kRejected);  // no F
+  EXPECT_EQ(cal->add(Vec3<double>(kNaN, 0, 0), 50000, &r), CalibratorAdd::kRejected);
+  EXPECT_EQ(cal->add(Vec3<double>(1e4, 0, 0), kNaN, &r), CalibratorAdd::kRejected);  // no F
   EXPECT_EQ(cal->add(Vec3<double>(1e4, 0, 0), -5, &r), CalibratorAdd::kRejected);
   EXPECT_EQ(cal->add(Vec3<double>(1e4, 0, 0), 50000, nullptr), CalibratorAdd::kRejected);
   Mat3<double> bad = r;
-  bad(1, 1) = INFINITY;
+  bad(1, 1) = kInf;
   EXPECT_EQ(cal->add(Vec3<double>(1e4, 0, 0), 50000, &bad), CalibratorAdd::kRejected);
   EXPECT_EQ(cal->counts().rejected, 5u);
   EXPECT_EQ(cal->stored(), 0u);

@@ -8,6 +8,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <limits>
 #include <memory>
 #include <random>
 
@@ -17,6 +18,9 @@
 
 namespace magvec::core {
 namespace {
+
+// Double constants: <cmath>'s NAN and INFINITY are floats (clang: -Wdouble-promotion).
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 using Cal = EkfCalibrator<double, 256>;
 
@@ -91,8 +95,8 @@ TEST(EkfCalibrator, SpikesAreGatedAndBadSamplesRejected) {
   EXPECT_GT(gated, 10u);
   EXPECT_EQ(gated, cal->filter().counters().gated);
   const Mat3<double> r = Mat3<double>::Identity();
-  EXPECT_EQ(cal->add(Vec3<double>(NAN, 0, 0), 53729, &r), CalibratorAdd::kRejected);
-  EXPECT_EQ(cal->add(Vec3<double>(1e4, 0, 0), NAN, &r), CalibratorAdd::kRejected);
+  EXPECT_EQ(cal->add(Vec3<double>(kNaN, 0, 0), 53729, &r), CalibratorAdd::kRejected);
+  EXPECT_EQ(cal->add(Vec3<double>(1e4, 0, 0), kNaN, &r), CalibratorAdd::kRejected);
   EXPECT_EQ(cal->add(Vec3<double>(1e4, 0, 0), -1, nullptr), CalibratorAdd::kRejected);
   SensorModel<double> model;
   EXPECT_TRUE(cal->solve(&model).ok);

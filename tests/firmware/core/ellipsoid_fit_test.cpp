@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <limits>
 #include <random>
 
 #include "li_setup.hpp"
@@ -9,6 +10,9 @@
 
 namespace magvec::core {
 namespace {
+
+// Double constants: <cmath>'s NAN and INFINITY are floats (clang: -Wdouble-promotion).
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 using namespace test_setup;
 
@@ -47,7 +51,7 @@ TEST(EllipsoidFit, PerSampleFieldEntersTheConstraintExactly) {
 
 TEST(EllipsoidFit, RefusesNonEllipsoidAndBadInput) {
   EllipsoidFit<double> fit;
-  EXPECT_FALSE(fit.add(Vec3<double>(NAN, 0, 0), 50000));
+  EXPECT_FALSE(fit.add(Vec3<double>(kNaN, 0, 0), 50000));
   EXPECT_FALSE(fit.add(Vec3<double>(1, 0, 0), -1));
   EXPECT_EQ(fit.count(), 0U);
   EXPECT_EQ(fit.solve().status, EllipsoidStatus::kTooFewSamples);

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cstdio>
+#include <limits>
 #include <random>
 
 #include "li_setup.hpp"
@@ -10,6 +11,9 @@
 
 namespace magvec::core {
 namespace {
+
+// Double constants: <cmath>'s NAN and INFINITY are floats (clang: -Wdouble-promotion).
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 using test_setup::kDeg;
 using test_setup::sd;
@@ -115,8 +119,8 @@ TEST(SineFit, MonteCarloAlphaScatterMatchesErrata) {
 
 TEST(SineFit, BadInputIsSkippedAndDegenerateSweepRefused) {
   SineSweep<double> xy, xz;
-  EXPECT_FALSE(xy.add(NAN, Vec3<double>(1, 2, 3)));
-  EXPECT_FALSE(xy.add(0.1, Vec3<double>(1, NAN, 3)));
+  EXPECT_FALSE(xy.add(kNaN, Vec3<double>(1, 2, 3)));
+  EXPECT_FALSE(xy.add(0.1, Vec3<double>(1, kNaN, 3)));
   EXPECT_EQ(xy.skipped(), 2U);
   for (int i = 0; i < 10; ++i) {
     xy.add(0.5, Vec3<double>(1, 2, 3));  // one angle only

@@ -8,6 +8,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <random>
 #include <string>
 #include <vector>
@@ -358,7 +359,7 @@ TEST(Evaluation, MatchesADirectComputation) {
   const magvec::core::Mat3<double> r = magvec::core::Mat3<double>::Identity();
   ev.add(Vec3<double>(110, 0, 0), 100.0, &r);  // before 10, after 0
   ev.add(Vec3<double>(-90, 0, 0), 100.0, &r);  // before -10, after 0
-  ev.add(Vec3<double>(NAN, 0, 0), 100.0, &r);  // ignored
+  ev.add(Vec3<double>(std::numeric_limits<double>::quiet_NaN(), 0, 0), 100.0, &r);  // ignored
   const host::Evaluation e = ev.result();
   EXPECT_EQ(e.n_intensity, 2U);
   EXPECT_DOUBLE_EQ(e.intensity_rms_before_nT, 10.0);

@@ -11,6 +11,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <random>
 #include <sstream>
 #include <string>
@@ -37,7 +38,7 @@ Result run(const std::string& args) {
 // Parses "<prefix> ... RMS <a> nT raw -> <b> nT compensated" from magvec apply.
 double compensated_rms(const std::string& apply_output) {
   const std::size_t k = apply_output.find("nT raw -> ");
-  if (k == std::string::npos) return NAN;
+  if (k == std::string::npos) return std::numeric_limits<double>::quiet_NaN();
   return std::stod(apply_output.substr(k + 10));
 }
 

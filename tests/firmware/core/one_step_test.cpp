@@ -288,32 +288,41 @@ TEST(OneStep, EstimatesBothNoiseFiguresFromTheData) {
   }
 }
 
-// The variance-component step from a start far below the truth (attitude noise 0.2 deg against the
-// 0.015 deg start, a 5 nT magnetometer): undamped, Fisher scoring could put the magnetometer
-// variance at zero in one round (seen on one realisation of the case above, the data drawn in
-// another order by clang), after which the residual covariance is singular across the field and
-// the fit diverged (verdict not_converged). Every one of these realisations converges to the truth.
+// The variance-component step from a start far below the truth (attitude noise 0.2 or 0.5 deg
+// against the 0.015 deg start): undamped, Fisher scoring could put the magnetometer variance at
+// zero in one round (first seen on the 5 nT / 0.2 deg case above with the noise drawn in clang's
+// order), after which the residual covariance is singular across the field and the fit diverged.
+// Before the fix, of the seeds run here, not_converged came on seed 5 of 16 at 5 nT / 0.2 deg, on
+// seed 2 of 4 at 50 nT / 0.5 deg and on seeds 1, 2 and 4 of 4 at 5 nT / 0.5 deg (7 of 16 seeds).
+// Now every realisation converges and the attitude figure lands within 4 of its sigmas.
+// So does the magnetometer figure, except at 5 nT / 0.5 deg, where it also carries the attitude
+// noise's second-order part along the field, F sa^2 = 3.5 nT (docs/equations.md).
 TEST(OneStep, NoiseEstimateFromAFarStartConvergesOnEveryRealisation) {
-  int within = 0;
-  for (std::uint64_t seed = 1; seed <= 16; ++seed) {
-    std::mt19937_64 rng(seed);
-    const auto data = simulate(from_li(paper_li()), paper_h_n(), random_attitudes(1000, rng), 5.0,
-                               0.2 * kDeg, rng);
-    BatchConfig<double> cfg;
-    cfg.estimate_noise = true;
-    auto cal = std::make_unique<Calibrator>(cfg);
-    for (const Sample& s : data)
-      cal->add_sample(s.m, s.f, s.r_meas);
-    const BatchResult<double> r = cal->solve(BatchMethod::kOneStep);
-    ASSERT_EQ(r.verdict, Verdict::kOk) << verdict_name(r.verdict) << " seed " << seed;
-    const bool ok_m = std::abs(r.noise.mag_nT - 5.0) < 4 * r.noise.mag_sigma_nT;
-    const bool ok_a = std::abs(r.noise.attitude_deg - 0.2) < 4 * r.noise.attitude_sigma_deg;
-    EXPECT_TRUE(ok_m && ok_a) << "seed " << seed << ": " << r.noise.mag_nT << " +- "
-                              << r.noise.mag_sigma_nT << " nT, " << r.noise.attitude_deg << " +- "
-                              << r.noise.attitude_sigma_deg << " deg";
-    within += ok_m && ok_a ? 1 : 0;
+  struct Case {
+    double sm_nT, sa_deg;
+    bool judge_mag;
+  };
+  for (const Case c : {Case{5.0, 0.2, true}, Case{50.0, 0.5, true}, Case{5.0, 0.5, false}}) {
+    for (std::uint64_t seed = 1; seed <= (c.sa_deg > 0.3 ? 4U : 16U); ++seed) {
+      std::mt19937_64 rng(seed);
+      const auto data = simulate(from_li(paper_li()), paper_h_n(), random_attitudes(1000, rng),
+                                 c.sm_nT, c.sa_deg * kDeg, rng);
+      BatchConfig<double> cfg;
+      cfg.estimate_noise = true;
+      auto cal = std::make_unique<Calibrator>(cfg);
+      for (const Sample& s : data)
+        cal->add_sample(s.m, s.f, s.r_meas);
+      const BatchResult<double> r = cal->solve(BatchMethod::kOneStep);
+      ASSERT_EQ(r.verdict, Verdict::kOk) << verdict_name(r.verdict) << " " << c.sm_nT << " nT "
+                                         << c.sa_deg << " deg seed " << seed;
+      EXPECT_LT(std::abs(r.noise.attitude_deg - c.sa_deg), 4 * r.noise.attitude_sigma_deg)
+          << c.sa_deg << " deg seed " << seed << ": " << r.noise.attitude_deg;
+      if (c.judge_mag) {
+        EXPECT_LT(std::abs(r.noise.mag_nT - c.sm_nT), 4 * r.noise.mag_sigma_nT)
+            << c.sm_nT << " nT seed " << seed << ": " << r.noise.mag_nT;
+      }
+    }
   }
-  EXPECT_EQ(within, 16);
 }
 
 }  // namespace

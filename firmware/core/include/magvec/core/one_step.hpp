@@ -178,11 +178,13 @@ class OneStepFit {
       // Variance-component update by Fisher scoring (for a covariance linear in the variances:
       // theta <- F^-1 u, u_k = 1/2 r^T S^-1 V_k S^-1 r), with the parameters' share of the
       // residual removed. Converges in a few rounds even when one component hides behind the
-      // other (the plain fixed point theta_k q_k / t_k crawls there). The step is damped so that
-      // no variance falls below a tenth of its value in one round: from a start far below the
-      // truth (attitude noise 0.2 deg against the 0.015 deg start) the full step can put the
-      // magnetometer variance at zero, the residual covariance is then singular across the field
-      // and the next fit diverges (docs/equations.md, variance components).
+      // other (the plain fixed point theta_k q_k / t_k crawls there). No variance falls below a
+      // tenth of its value in one round: from a start far below the truth (attitude noise 0.2 deg
+      // against the 0.015 deg start) the full step can put the magnetometer variance at zero, the
+      // residual covariance is then singular across the field and the next fit diverges. A
+      // component held at that bound leaves the other its Fisher step given the held value, so a
+      // variance the data put at zero descends while the other still converges
+      // (docs/equations.md, variance components).
       const Scalar red =
           Scalar(1) - Scalar(kParams) / (Scalar(3) * static_cast<Scalar>(sums.count));
       const Scalar det = sums.f_mm * sums.f_aa - sums.f_ma * sums.f_ma;
@@ -190,14 +192,17 @@ class OneStepFit {
       Scalar sa2 = sa * sa * sums.q_att / std::max(sums.t_att * red, Scalar(1e-30));
       if (det > Scalar(0)) {
         const Scalar um = Scalar(0.5) * sums.q_mag / red, ua = Scalar(0.5) * sums.q_att / red;
-        const Scalar vm = sm * sm, va = sa * sa;
-        const Scalar fm = (sums.f_aa * um - sums.f_ma * ua) / det;
-        const Scalar fa = (sums.f_mm * ua - sums.f_ma * um) / det;
-        Scalar t{1};
-        if (fm < Scalar(0.1) * vm) t = std::min(t, Scalar(0.9) * vm / (vm - fm));
-        if (fa < Scalar(0.1) * va) t = std::min(t, Scalar(0.9) * va / (va - fa));
-        sm2 = vm + t * (fm - vm);
-        sa2 = va + t * (fa - va);
+        const Scalar lo_m = Scalar(0.1) * sm * sm, lo_a = Scalar(0.1) * sa * sa;
+        sm2 = (sums.f_aa * um - sums.f_ma * ua) / det;
+        sa2 = (sums.f_mm * ua - sums.f_ma * um) / det;
+        if (sa2 < lo_a) {
+          sa2 = lo_a;
+          sm2 = (um - sums.f_ma * sa2) / sums.f_mm;
+        }
+        if (sm2 < lo_m) {
+          sm2 = lo_m;
+          sa2 = std::max((ua - sums.f_ma * sm2) / sums.f_aa, lo_a);
+        }
       }
       const Scalar sm_new = std::max(std::sqrt(std::max(sm2, Scalar(0))), sm_floor);
       const Scalar sa_new = std::max(std::sqrt(std::max(sa2, Scalar(0))), sm_new * Scalar(1e-3));

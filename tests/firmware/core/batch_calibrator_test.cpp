@@ -2,7 +2,6 @@
 
 #include <gtest/gtest.h>
 
-#include <limits>
 #include <memory>
 #include <random>
 
@@ -11,9 +10,6 @@
 
 namespace magvec::core {
 namespace {
-
-// Double constants: <cmath>'s NAN and INFINITY are floats (clang: -Wdouble-promotion).
-constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 using namespace test_setup;
 using Calibrator = BatchCalibrator<double, 1024>;

@@ -7,7 +7,6 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
-#include <limits>
 #include <memory>
 #include <random>
 
@@ -19,9 +18,8 @@
 namespace magvec::core {
 namespace {
 
-// Double constants: <cmath>'s NAN and INFINITY are floats (clang: -Wdouble-promotion).
-constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
-constexpr double kInf = std::numeric_limits<double>::infinity();
+using test_setup::kInf;
+using test_setup::kNaN;
 
 using Cal = BatchLiCalibrator<double, 512>;
 constexpr double kDeg = kPi<double> / 180.0;

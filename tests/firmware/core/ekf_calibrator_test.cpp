@@ -8,7 +8,6 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
-#include <limits>
 #include <memory>
 #include <random>
 
@@ -19,8 +18,7 @@
 namespace magvec::core {
 namespace {
 
-// Double constants: <cmath>'s NAN and INFINITY are floats (clang: -Wdouble-promotion).
-constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+using test_setup::kNaN;
 
 using Cal = EkfCalibrator<double, 256>;
 

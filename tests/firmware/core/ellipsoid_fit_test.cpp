@@ -2,7 +2,6 @@
 
 #include <gtest/gtest.h>
 
-#include <limits>
 #include <random>
 
 #include "li_setup.hpp"
@@ -10,9 +9,6 @@
 
 namespace magvec::core {
 namespace {
-
-// Double constants: <cmath>'s NAN and INFINITY are floats (clang: -Wdouble-promotion).
-constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
 using namespace test_setup;
 

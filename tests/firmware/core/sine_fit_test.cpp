@@ -3,7 +3,6 @@
 #include <gtest/gtest.h>
 
 #include <cstdio>
-#include <limits>
 #include <random>
 
 #include "li_setup.hpp"
@@ -12,8 +11,7 @@
 namespace magvec::core {
 namespace {
 
-// Double constants: <cmath>'s NAN and INFINITY are floats (clang: -Wdouble-promotion).
-constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+using test_setup::kNaN;
 
 using test_setup::kDeg;
 using test_setup::sd;

@@ -24,8 +24,6 @@ namespace {
 
 using namespace test_setup;
 
-constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
-
 // Smooth manoeuvre (Li Euler angles): turning at ~1 rad/s while pitching and rolling by up to
 // 40/35 deg, so every direction is seen within a few seconds.
 Mat3<double> manoeuvre(double t) {

@@ -144,8 +144,6 @@ class SampleStore {
 template <typename Scalar>
 class SampleView {
  public:
-  SampleView(const StoredSample<Scalar>* data, std::size_t size) noexcept
-      : data_(data), size_(size) {}
   template <std::size_t Capacity>
   SampleView(const SampleStore<Scalar, Capacity>& store) noexcept  // NOLINT: a store is a view
       : data_(store.data()), size_(store.size()) {}

@@ -92,6 +92,10 @@ class ScalarPty : public ::testing::Test {
     patch(text, "serial_device = \"/dev/ttyUSB0\"",
           "serial_device = \"" + (dir_ / "ttyFLUX").string() + "\"");
     patch(text, "rate_hz = 100.0                 # INS output rate", "rate_hz = 200.0 #");
+    // FakeIns stamps an epoch when it is queued, with no CAN transit to compensate: the default
+    // 500 us would pair each sample with the attitude 0.5 ms later, a tenth of the next 5-ms
+    // step (about 25 nT RMS of E/N/U scatter at these rates, twice the attitude-noise floor).
+    patch(text, "latency_comp_us = 500", "latency_comp_us = 0");
     patch(text, "solve_on_worker = true", "solve_on_worker = false");
     patch(text, "li_min_samples = 100", "li_min_samples = 300");
     patch(text, "validation_samples = 100", "validation_samples = 200");

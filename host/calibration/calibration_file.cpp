@@ -212,6 +212,7 @@ std::string to_json_text(const CalibrationFile& cal) {
     json out = {{"aligned", cal.output->aligned}};
     if (std::isfinite(cal.output->sigma_f_nT)) out["sigma_f_nT"] = cal.output->sigma_f_nT;
     if (std::isfinite(cal.output->sigma_enu_nT)) out["sigma_enu_nT"] = cal.output->sigma_enu_nT;
+    if (cal.output->model_reference) out["model_reference"] = true;
     j["output"] = out;
   }
   json sigma = json::object();
@@ -343,6 +344,10 @@ CalibrationFile from_json_checked(const json& j, const std::string& source) {
       out.sigma_f_nT = non_negative(*v, source, "output.sigma_f_nT");
     if (const json* v = member(*oj, "sigma_enu_nT"))
       out.sigma_enu_nT = non_negative(*v, source, "output.sigma_enu_nT");
+    if (const json* m = member(*oj, "model_reference")) {
+      if (!m->is_boolean()) fail(source, "field 'output.model_reference' must be true or false");
+      out.model_reference = m->get<bool>();
+    }
     cal.output = out;
   }
   if (const json* sp = object_member(j, "sine", source, "sine")) {

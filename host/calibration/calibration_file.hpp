@@ -67,6 +67,9 @@ struct OutputQuality {
   bool aligned = true;  // Rm estimates the misalignment to the INS (h_n is E/N/U)
   double sigma_f_nT = std::numeric_limits<double>::quiet_NaN();    // 1-sigma of |h|
   double sigma_enu_nT = std::numeric_limits<double>::quiet_NaN();  // 1-sigma per E/N/U axis
+  // The scale came from a geomagnetic model's F (magvecd without a scalar magnetometer): the
+  // records carry kOutModelReference and sigma_f_nT includes the model's 1-sigma.
+  bool model_reference = false;
 };
 
 // The geomagnetic model's field at the survey site (magvec calibrate --site/--date).

@@ -195,10 +195,10 @@ void report_calibration(const core::SensorLoop<double, LiCal>& loop, const LiCal
                              std::string(core::cal_state_name(loop.state())) + ", verdict " +
                              core::verdict_name(res.verdict) + ")");
   }
-  write_cal(
-      cal_path, *cal, loop.last_validation_rms_nT(),
-      OutputQuality{loop.active_aligned(), loop.active_sigma_f_nT(), loop.active_sigma_enu_nT()},
-      o);
+  write_cal(cal_path, *cal, loop.last_validation_rms_nT(),
+            OutputQuality{loop.active_aligned(), loop.active_sigma_f_nT(),
+                          loop.active_sigma_enu_nT(), loop.active_model_reference()},
+            o);
 
   // Recovered parameters vs truth.
   core::LiParams<double> truth;
@@ -275,8 +275,8 @@ void report_calibration(const core::SensorLoop<double, VecCal>& loop, const VecC
       fixed(loop.last_validation_rms_nT(), 3) + " nT)";
   file.quality.extra["time_offset_estimate_ms"] = dg.time_offset_s * 1e3;
   file.quality.extra["time_offset_sigma_ms"] = sg.dt_s * 1e3;
-  file.output =
-      OutputQuality{loop.active_aligned(), loop.active_sigma_f_nT(), loop.active_sigma_enu_nT()};
+  file.output = OutputQuality{loop.active_aligned(), loop.active_sigma_f_nT(),
+                              loop.active_sigma_enu_nT(), loop.active_model_reference()};
   const auto& n = dg.noise;
   file.noise.mag_nT = n.mag_nT;
   file.noise.mag_sigma_nT = n.mag_sigma_nT;

@@ -354,6 +354,8 @@ Config parse_config(const std::string& text, const std::string& source) {
   ids.integer("ekf_quat", &c.ins.ids.ekf_quat, 0, 0x7FF);
   ids.integer("ekf_euler", &c.ins.ids.ekf_euler, 0, 0x7FF);
   ids.integer("ekf_orientation_acc", &c.ins.ids.ekf_orientation_acc, 0, 0x7FF);
+  ids.integer("ekf_pos", &c.ins.ids.ekf_pos, 0, 0x7FF);
+  ids.integer("ekf_altitude", &c.ins.ids.ekf_altitude, 0, 0x7FF);
   ids.check_unknown();
   ins.check_unknown();
 
@@ -416,6 +418,7 @@ Config parse_config(const std::string& text, const std::string& source) {
   cal.boolean("ekf_align", &cc.ekf_align);
   cal.integer("li_min_samples", &cc.li_min_samples, 16, 512);
   cal.number_or_nan("reference_field_nT", &cc.reference_field_nT, 1000, 200000);
+  cal.one_of("reference_model", &cc.reference_model, {"wmm2025", "none"});
   cal.boolean("solve_on_worker", &cc.solve_on_worker);
   cal.check_unknown();
   c.scalar.align.fallback_nT = cc.reference_field_nT;

@@ -233,6 +233,11 @@ void Daemon::on_read_error(hal::Status s) {
                                        std::to_string(read_errors_) + " errors in all)");
 }
 
+void Daemon::on_model_reference(const std::string& model, double sigma_nT) {
+  // Before the first sample that carries the model's F; a calibration in progress starts over.
+  event(reference_event(++sequence_, model, sigma_nT));
+}
+
 void Daemon::event(const magvec_lcm::pipeline_event& e) {
   flush_raw_batch();
   publisher_->publish(config_.lcm.channels.pipeline, e);

@@ -18,6 +18,7 @@
 #include "magvec/drivers/serial_fluxgate.hpp"
 #include "magvec/host/daemon/daemon_error.hpp"
 #include "magvec/host/daemon/device_feed.hpp"
+#include "magvec/host/daemon/position_reference.hpp"
 #include "magvec/host/daemon/sim_setup.hpp"
 #include "magvec/host/hil/hil_session.hpp"
 
@@ -123,7 +124,8 @@ class SimDevices final : public Devices {
 
 class RealDevices final : public Devices {
  public:
-  RealDevices(const Config& c, WaitFn wait, hal::AttitudeSource* ins_override)
+  RealDevices(const Config& c, WaitFn wait, hal::AttitudeSource* ins_override,
+              hal::PositionSource* positions_override)
       : reference_nT_(c.calibration.reference_field_nT), wait_(std::move(wait)) {
     drivers::OsError err;
     const auto& m = c.magnetometer;
@@ -163,6 +165,7 @@ class RealDevices final : public Devices {
     } else {
       open_can(c);
     }
+    if (uses_model_reference(c)) open_model_reference(positions_override);
     if (c.scalar.enabled) {
       drivers::SerialConfig sc;
       sc.device = c.scalar.device;
@@ -177,12 +180,13 @@ class RealDevices final : public Devices {
     } else {
       feed_ = std::make_unique<DeviceFeed>(*mag_, *ins_, reference_nT_);
     }
-    describe_ = (m.link == "spi" ? "ADS131M04 on " + m.spi_device + " (DRDY " + m.drdy_chip +
-                                       " line " + std::to_string(m.drdy_line) + ")"
-                                 : "serial fluxgate on " + m.serial_device) +
-                ", SBG INS on " +
-                (ins_override != nullptr ? "(given source)" : c.ins.can_interface) +
-                (c.scalar.enabled ? ", G-882 scalar magnetometer on " + c.scalar.device : "");
+    describe_ =
+        (m.link == "spi" ? "ADS131M04 on " + m.spi_device + " (DRDY " + m.drdy_chip + " line " +
+                               std::to_string(m.drdy_line) + ")"
+                         : "serial fluxgate on " + m.serial_device) +
+        ", SBG INS on " + (ins_override != nullptr ? "(given source)" : c.ins.can_interface) +
+        (c.scalar.enabled ? ", G-882 scalar magnetometer on " + c.scalar.device : "") +
+        (model_ ? ", reference field from " + model_->model_name() + " at the INS position" : "");
   }
 
   ~RealDevices() override {
@@ -205,7 +209,8 @@ class RealDevices final : public Devices {
     cc.interface = c.ins.can_interface;
     for (const std::uint32_t id :
          {c.ins.ids.status_01, c.ins.ids.status_03, c.ins.ids.ekf_info, c.ins.ids.ekf_quat,
-          c.ins.ids.ekf_euler, c.ins.ids.ekf_orientation_acc}) {
+          c.ins.ids.ekf_euler, c.ins.ids.ekf_orientation_acc, c.ins.ids.ekf_pos,
+          c.ins.ids.ekf_altitude}) {
       drivers::CanFilterSpec f;
       f.id = id;
       f.mask = 0x7FF;
@@ -227,6 +232,7 @@ class RealDevices final : public Devices {
   // past the newest INS sample: a held attitude instead of an interpolated one.)
   bool poll(EventHandler& h, std::uint32_t max_wait_us) override {
     const FeedResult r = feed_->poll(h, max_wait_us);
+    if (model_) take_positions(h);
     // A failing device answers at once: wait out the period (serving commands) rather than spin.
     wait_(r == FeedResult::kError ? max_wait_us : 0);
     return true;
@@ -248,6 +254,42 @@ class RealDevices final : public Devices {
   std::string describe() const override { return describe_; }
 
  private:
+  void open_model_reference(hal::PositionSource* positions_override) {
+    positions_ = positions_override != nullptr ? positions_override
+                 : can_ins_                    ? &can_ins_->positions()
+                                               : nullptr;
+    if (positions_ == nullptr) return;  // an INS given without positions (tests)
+    try {
+      model_ = std::make_unique<PositionReference>(geomag::MagneticModel::wmm2025(),
+                                                   &PositionReference::utc_decimal_year_now);
+    } catch (const geomag::GeomagError& e) {
+      throw DaemonError(kExitConfig,
+                        std::string("calibration.reference_model: ") + e.what() +
+                            " (install the model data, or set calibration.reference_field_nT, "
+                            "or reference_model = \"none\")");
+    }
+  }
+
+  // The position fixes decoded meanwhile: the model's F for the samples read from now on. The
+  // first F is announced (the pipeline then validates and flags by the model's sigma) before any
+  // sample carries it.
+  void take_positions(EventHandler& h) {
+    hal::PositionSample p;
+    for (int guard = 0; guard < 16 && positions_->read(p, 0) == hal::Status::kOk; ++guard) {
+      const std::uint64_t errors = model_->counters().model_errors;
+      const bool changed = model_->on_position(p);
+      if (model_->counters().model_errors > errors && model_->counters().model_errors == 1)
+        spdlog::warn("reference model: {} (position fix not used)", model_->last_error());
+      if (!changed) continue;
+      if (!model_announced_) {
+        model_announced_ = true;
+        spdlog::info("reference field: {}", model_->describe());
+        h.on_model_reference(model_->field()->model, model_->sigma_nT());
+      }
+      feed_->set_reference_nT(model_->total_nT());
+    }
+  }
+
   double reference_nT_;
   WaitFn wait_;
   drivers::LinuxClock clock_;
@@ -263,6 +305,9 @@ class RealDevices final : public Devices {
   std::unique_ptr<drivers::SerialScalarSource> scalar_;
   hal::MagnetometerSource* mag_{nullptr};
   std::unique_ptr<DeviceFeed> feed_;
+  hal::PositionSource* positions_{nullptr};
+  std::unique_ptr<PositionReference> model_;
+  bool model_announced_{false};
   std::string describe_;
 };
 
@@ -272,8 +317,9 @@ std::unique_ptr<Devices> open_sim_devices(const Config& c, WaitFn wait, NowFn no
   return std::make_unique<SimDevices>(c, std::move(wait), std::move(now));
 }
 
-std::unique_ptr<Devices> open_real_devices(const Config& c, WaitFn wait, hal::AttitudeSource* ins) {
-  return std::make_unique<RealDevices>(c, std::move(wait), ins);
+std::unique_ptr<Devices> open_real_devices(const Config& c, WaitFn wait, hal::AttitudeSource* ins,
+                                           hal::PositionSource* positions) {
+  return std::make_unique<RealDevices>(c, std::move(wait), ins, positions);
 }
 
 }  // namespace magvec::host::daemon

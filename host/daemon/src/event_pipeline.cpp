@@ -38,6 +38,13 @@ void EventPipeline::apply(const magvec_lcm::pipeline_event& e) {
       }
       pipeline_->set_external_solve(true);
       return;
+    case magvec_lcm::pipeline_event::REFERENCE:
+      if (!pipeline_) {
+        ++skipped_;
+        return;
+      }
+      pipeline_->set_reference_sigma_nT(reference_sigma_from(e));
+      return;
     case magvec_lcm::pipeline_event::SOLVE_RESULT:
       if (!pipeline_) {
         ++skipped_;

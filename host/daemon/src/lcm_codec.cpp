@@ -131,9 +131,9 @@ magvec_lcm::pipeline_event blank_event(std::int8_t kind, std::int64_t sequence) 
   e.cal_id = 0;
   return e;
 }
-// The extras of SET_ACTIVE and SOLVE_RESULT travel as "key = value" lines in the event's text
-// field, which those kinds do not otherwise use: no new field, so the type's fingerprint, hence
-// old logs, stay valid.
+// The extras of SET_ACTIVE, SOLVE_RESULT and REFERENCE travel as "key = value" lines in the event's
+// text field, which those kinds do not otherwise use: no new field, so the type's fingerprint,
+// hence old logs, stay valid.
 double extra_number(const std::string& text, const char* key) noexcept {
   const std::string k = std::string(key) + " = ";
   std::size_t at = 0;
@@ -149,10 +149,16 @@ double extra_number(const std::string& text, const char* key) noexcept {
   return std::numeric_limits<double>::quiet_NaN();
 }
 
-bool extra_false(const std::string& text, const char* key) noexcept {
-  const std::string k = std::string(key) + " = false";
+bool extra_is(const std::string& text, const char* key, const char* value) noexcept {
+  const std::string k = std::string(key) + " = " + value;
   const std::size_t at = text.find(k);
   return at != std::string::npos && (at == 0 || text[at - 1] == '\n');
+}
+bool extra_false(const std::string& text, const char* key) noexcept {
+  return extra_is(text, key, "false");
+}
+bool extra_true(const std::string& text, const char* key) noexcept {
+  return extra_is(text, key, "true");
 }
 
 // A finite positive figure, else NaN (a corrupt or hand-edited log never installs a negative
@@ -182,6 +188,7 @@ magvec_lcm::pipeline_event set_active_event(std::int64_t sequence,
   extra << "aligned = " << (output.aligned ? "true" : "false") << "\n";
   if (std::isfinite(output.sigma_f_nT)) extra << "sigma_f_nT = " << output.sigma_f_nT << "\n";
   if (std::isfinite(output.sigma_enu_nT)) extra << "sigma_enu_nT = " << output.sigma_enu_nT << "\n";
+  if (output.model_reference) extra << "model_reference = true\n";
   e.config_toml = extra.str();
   return e;
 }
@@ -191,6 +198,7 @@ OutputQuality output_quality_from(const magvec_lcm::pipeline_event& e) noexcept 
   q.aligned = !extra_false(e.config_toml, "aligned");
   q.sigma_f_nT = positive_or_nan(extra_number(e.config_toml, "sigma_f_nT"));
   q.sigma_enu_nT = positive_or_nan(extra_number(e.config_toml, "sigma_enu_nT"));
+  q.model_reference = extra_true(e.config_toml, "model_reference");
   return q;
 }
 
@@ -232,6 +240,21 @@ SolveResult solve_result_from(const magvec_lcm::pipeline_event& e) noexcept {
       static_cast<float>(positive_or_nan(extra_number(e.config_toml, "attitude_noise_deg")));
   r.mag_noise_nT = static_cast<float>(positive_or_nan(extra_number(e.config_toml, "mag_noise_nT")));
   return r;
+}
+
+magvec_lcm::pipeline_event reference_event(std::int64_t sequence, const std::string& model,
+                                           double sigma_nT) {
+  magvec_lcm::pipeline_event e = blank_event(magvec_lcm::pipeline_event::REFERENCE, sequence);
+  std::ostringstream extra;
+  extra.precision(17);
+  extra << "model = " << model << "\n";
+  extra << "reference_sigma_nT = " << sigma_nT << "\n";
+  e.config_toml = extra.str();
+  return e;
+}
+
+double reference_sigma_from(const magvec_lcm::pipeline_event& e) noexcept {
+  return positive_or_nan(extra_number(e.config_toml, "reference_sigma_nT"));
 }
 
 magvec_lcm::calibration_state to_lcm(const CalibrationStatus& s, std::uint64_t t_us,

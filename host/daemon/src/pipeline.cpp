@@ -125,9 +125,19 @@ class PipelineImpl final : public Pipeline {
     return 1e-6 * static_cast<double>(core_.pipeline().time_offset_us());
   }
   void start_calibration() noexcept override { core_.loop().start_calibration(); }
+  void set_reference_sigma_nT(double sigma_nT) noexcept override {
+    if (!(std::isfinite(sigma_nT) && sigma_nT > 0)) return;
+    auto& lp = core_.loop();
+    lp.set_reference_sigma_nT(sigma_nT);
+    const core::CalState st = lp.state();
+    if (st == core::CalState::kCollecting || st == core::CalState::kSolving ||
+        st == core::CalState::kValidating)
+      lp.start_calibration();
+  }
   void set_active(const core::SensorModel<double>& model, std::uint32_t cal_id,
                   const OutputQuality& output) noexcept override {
-    core_.loop().set_active(model, cal_id, output.aligned, output.sigma_f_nT, output.sigma_enu_nT);
+    core_.loop().set_active(model, cal_id, output.aligned, output.sigma_f_nT, output.sigma_enu_nT,
+                            output.model_reference);
   }
   void set_external_solve(bool on) noexcept override { core_.loop().set_external_solve(on); }
   SolveJob take_solve_job() override {
@@ -170,7 +180,8 @@ class PipelineImpl final : public Pipeline {
     s.validation_rms_nT = lp.last_validation_rms_nT();
     s.cal_id = lp.cal_id();
     s.active = lp.active_model();
-    s.output = OutputQuality{lp.active_aligned(), lp.active_sigma_f_nT(), lp.active_sigma_enu_nT()};
+    s.output = OutputQuality{lp.active_aligned(), lp.active_sigma_f_nT(), lp.active_sigma_enu_nT(),
+                             lp.active_model_reference()};
     s.residual_nT = residual_n_ > 0 ? std::sqrt(residual_ms_) : std::nan("");
     core::GuidanceInput<double> in;
     in.collecting = lp.state() == core::CalState::kCollecting;

@@ -19,7 +19,6 @@ constexpr double kSigmaNorth_nT = 137.0;
 constexpr double kSigmaEast_nT = 89.0;
 constexpr double kSigmaDown_nT = 141.0;
 constexpr double kSigmaHorizontal_nT = 133.0;
-constexpr double kSigmaTotal_nT = 138.0;
 constexpr double kSigmaInclination_deg = 0.20;
 constexpr double kSigmaDeclinationConst_deg = 0.26;
 constexpr double kSigmaDeclinationH_nTdeg = 5417.0;
@@ -176,7 +175,7 @@ ReferenceField MagneticModel::field(const Site& site, double year) const {
   r.inclination_deg = std::atan2(-bu, r.horizontal_nT) * 180.0 / core::kPi<double>;
   r.sigma.enu_nT = core::Vec3<double>(kSigmaEast_nT, kSigmaNorth_nT, kSigmaDown_nT);
   r.sigma.horizontal_nT = kSigmaHorizontal_nT;
-  r.sigma.total_nT = kSigmaTotal_nT;
+  r.sigma.total_nT = MagneticModel::kTotalSigma_nT;
   r.sigma.inclination_deg = kSigmaInclination_deg;
   const double dh = kSigmaDeclinationH_nTdeg / r.horizontal_nT;
   r.sigma.declination_deg = std::min(180.0, std::hypot(kSigmaDeclinationConst_deg, dh));

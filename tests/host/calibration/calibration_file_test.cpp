@@ -201,6 +201,19 @@ TEST(CalibrationFile, SigmasAndNoiseFiguresMustNotBeNegative) {
   }
 }
 
+// magvecd's calibrations from a geomagnetic model's F say so, and keep saying so after a restart.
+TEST(CalibrationFile, ModelReferenceOfTheOutputRoundTripsAndIsABoolean) {
+  CalibrationFile cal = sample_file();
+  EXPECT_EQ(to_json_text(cal).find("model_reference"), std::string::npos);  // absent: false
+  cal.output->model_reference = true;
+  const CalibrationFile back = from_json_text(to_json_text(cal), "mem");
+  ASSERT_TRUE(back.output.has_value());
+  EXPECT_TRUE(back.output->model_reference);
+  EXPECT_NE(read_error(with_member("/output/model_reference", "1"))
+                .find("field 'output.model_reference' must be true or false"),
+            std::string::npos);
+}
+
 TEST(CalibrationFile, HugeButFiniteModelIsRejected) {
   nlohmann::json j = nlohmann::json::parse(to_json_text(sample_file()));
   j["W"] = {1e200, 0, 0, 0, 1e200, 0, 0, 0, 1e200};

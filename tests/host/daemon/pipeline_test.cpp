@@ -7,7 +7,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstdio>
 #include <cstring>
 #include <deque>
 #include <filesystem>
@@ -711,6 +710,46 @@ TEST(DaemonPipeline, TimeOffsetFromSetActiveUnlessConfigured) {
   EXPECT_DOUBLE_EQ(ep.pipeline()->time_offset_s(), 0.004);
   ep.apply(set_active_event(4, core::SensorModel<double>{}, 3, -0.025));
   EXPECT_DOUBLE_EQ(ep.pipeline()->time_offset_s(), 0.004);
+}
+
+// REFERENCE (the geomagnetic model's F from now on, real mode without a scalar magnetometer):
+// the loop validates and flags by the model's sigma, and a calibration in progress starts over;
+// SET_ACTIVE carries the flag of a model-referenced calibration (cal.json after a restart).
+TEST(DaemonPipeline, ReferenceEventAndModelReferencedActiveCalibration) {
+  const magvec_lcm::pipeline_event e = reference_event(7, "WMM2025", 138.0);
+  EXPECT_TRUE(e.kind == magvec_lcm::pipeline_event::REFERENCE);
+  EXPECT_DOUBLE_EQ(reference_sigma_from(e), 138.0);
+  magvec_lcm::pipeline_event corrupt = e;
+  corrupt.config_toml = "model = WMM2025\nreference_sigma_nT = -5\n";
+  EXPECT_TRUE(std::isnan(reference_sigma_from(corrupt)));
+
+  VectorSink sink;
+  EventPipeline ep(sink);
+  ep.apply(session_start_event(1, fast_config_text("li")));
+  ep.apply(start_calibration_event(2));
+  ep.apply(corrupt);  // ignored: no sigma
+  EXPECT_EQ(ep.pipeline()->state(), core::CalState::kCollecting);
+  ep.apply(e);
+  EXPECT_EQ(ep.pipeline()->state(), core::CalState::kCollecting);
+
+  OutputQuality q;
+  q.sigma_f_nT = 138.5;
+  q.model_reference = true;
+  const magvec_lcm::pipeline_event active =
+      set_active_event(3, core::SensorModel<double>{}, 4, 0, q);
+  EXPECT_TRUE(output_quality_from(active).model_reference);
+  EXPECT_FALSE(
+      output_quality_from(set_active_event(3, core::SensorModel<double>{}, 4)).model_reference);
+  ep.apply(active);
+  EXPECT_TRUE(ep.pipeline()->status().output.model_reference);
+  hal::MagnetometerSample s;
+  s.t_us = 1000;
+  s.m_nT = {20000.0, 10000.0, -40000.0};
+  ep.pipeline()->on_magnetometer(s, 49000.0);
+  ep.pipeline()->flush();
+  ASSERT_FALSE(sink.records.empty());
+  EXPECT_NE(sink.records.back().flags & core::kOutModelReference, 0u);
+  EXPECT_DOUBLE_EQ(sink.records.back().sigma_f_nT, 138.5);
 }
 
 }  // namespace

@@ -15,9 +15,11 @@
 #include <cstdlib>
 #include <deque>
 #include <filesystem>
+#include <functional>
 #include <optional>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "logged_daemon.hpp"
@@ -27,6 +29,8 @@
 #include "magvec/drivers/sim/sim_g882.hpp"
 #include "magvec/host/daemon/daemon_error.hpp"
 #include "magvec/host/daemon/devices.hpp"
+#include "magvec/host/daemon/position_reference.hpp"
+#include "magvec/host/geomag/reference_field.hpp"
 #include "support/pty_pair.hpp"
 
 namespace magvec::host::daemon {
@@ -47,12 +51,32 @@ struct FakeIns final : hal::AttitudeSource {
   const hal::AttitudeCounters& counters() const noexcept override { return c; }
 };
 
+struct FakePositions final : hal::PositionSource {
+  std::deque<hal::PositionSample> queue;
+  hal::PositionCounters c{};
+  hal::Status read(hal::PositionSample& out, std::uint32_t) noexcept override {
+    if (queue.empty()) return hal::Status::kNoData;
+    out = queue.front();
+    queue.pop_front();
+    ++c.samples;
+    return hal::Status::kOk;
+  }
+  const hal::PositionCounters& counters() const noexcept override { return c; }
+};
+
 struct Handler final : EventHandler {
   test::LoggedDaemon& d;
   std::vector<std::uint64_t> t_us;
   std::vector<double> f_nT;
   std::uint32_t read_errors{0};
+  std::vector<std::pair<std::string, double>> model_references;
   explicit Handler(test::LoggedDaemon& daemon) : d(daemon) {}
+  // As Daemon::on_model_reference: the REFERENCE event, in feed order.
+  void on_model_reference(const std::string& model, double sigma_nT) override {
+    model_references.emplace_back(model, sigma_nT);
+    d.event(
+        reference_event(100 + static_cast<std::int64_t>(model_references.size()), model, sigma_nT));
+  }
   void on_attitude(const hal::AttitudeSample& a) override { d.on_attitude(a); }
   void on_magnetometer(const hal::MagnetometerSample& s, double f) override {
     t_us.push_back(s.t_us);
@@ -114,6 +138,75 @@ class ScalarPty : public ::testing::Test {
     return text;
   }
 
+  // The qemu guest's rotation (tests/vm/vm_magvecd_test.cpp): up to 60 deg/s, at 200 Hz.
+  static drivers::sim::ScenarioConfig rotation() {
+    drivers::sim::ScenarioConfig sc = drivers::sim::scenario_rotation();
+    sc.rate_hz = 200;
+    sc.rotation.heading_rate_deg_s = 30;
+    sc.rotation.pitch_amp_deg = 40;
+    sc.rotation.pitch_period_s = 4.2;
+    sc.rotation.roll_amp_deg = 35;
+    sc.rotation.roll_period_s = 3.7;
+    sc.num_samples = 200 * 40;
+    return sc;
+  }
+
+  struct Played {
+    std::vector<double> truth;        // |h_n| of each sample written, in order
+    std::vector<double> reading_t_s;  // times of the scalar readings written
+    std::uint64_t scalar_lines{0};
+    double applied_t_s{std::nan("")};
+  };
+  // Plays `sc` in real time into the ptys (the G-882's lines too when `scalar`) and the fake INS,
+  // polling `devices` into `h` after each sample, until 400 samples after the calibration was
+  // applied or the scenario ends; before_sample(i) runs first for each sample i.
+  void play(const drivers::sim::ScenarioConfig& sc, Devices& devices, FakeIns& ins, Handler& h,
+            bool scalar, const std::function<void(std::size_t)>& before_sample, Played* out) {
+    drivers::sim::Simulator sim(sc, 17);
+    drivers::sim::SimSerialFluxgate fluxgate(drivers::sim::SimSerialConfig{});
+    drivers::sim::SimG882 g882(drivers::sim::SimG882Config{});
+    drivers::LinuxClock clock;
+    const auto t0 = std::chrono::steady_clock::now();
+    drivers::sim::SimSample s{};
+    std::uint32_t after_applied = 0;
+    for (std::size_t i = 0; sim.next(&s) && after_applied < 400; ++i) {
+      std::this_thread::sleep_until(
+          t0 + std::chrono::microseconds(static_cast<std::int64_t>(s.t_s * 1e6)));
+      before_sample(i);
+      // The attitude of this sample at the times before its line is written and after it has
+      // been read: the sample's receive time lies between, where the buffer interpolates between
+      // two equal attitudes (one INS epoch per sample would put a fraction of the next epoch's
+      // turn into it: at 90 deg/s, 0.5 ms of transit is 0.05 deg, 40 nT).
+      hal::AttitudeSample a;
+      const core::Quat<double> q = core::quat_from_r_bn(s.r_bn_ins);
+      a.q_nb = {q.w(), q.x(), q.y(), q.z()};
+      a.flags = hal::kAttAttitudeValid | hal::kAttHeadingValid | hal::kAttStatusKnown;
+      a.t_us = clock.now_us();
+      ins.queue.push_back(a);
+      auto pump = [](hal::SerialPort& from, magvec::test::PtyPair& to) {
+        std::array<std::uint8_t, 128> buf{};
+        std::size_t n = 0;
+        while (from.read(buf, n, 0) == hal::Status::kOk)
+          if (!to.write_all(std::span<const std::uint8_t>(buf.data(), n))) return false;
+        return true;
+      };
+      if (scalar) {
+        if (g882.transmit(s)) out->reading_t_s.push_back(s.t_s);
+        ASSERT_TRUE(pump(g882, *scalar_pty_));
+      }
+      fluxgate.transmit(s);
+      ASSERT_TRUE(pump(fluxgate, *fluxgate_pty_));
+      out->truth.push_back(s.h_n_true_nT.norm());
+      ASSERT_TRUE(devices.poll(h, 20'000));
+      a.t_us = clock.now_us();
+      ins.queue.push_back(a);
+      if (h.d.ep.pipeline()->status().state == core::CalState::kApplied) {
+        if (after_applied++ == 0) out->applied_t_s = s.t_s;
+      }
+    }
+    out->scalar_lines = g882.injected().lines;
+  }
+
   fs::path dir_;
   std::unique_ptr<magvec::test::PtyPair> fluxgate_pty_;
   std::unique_ptr<magvec::test::PtyPair> scalar_pty_;
@@ -130,64 +223,21 @@ TEST_F(ScalarPty, CalibratesAndValidatesAgainstTheTimeAlignedScalarField) {
   fluxgate_pty_->close_slave();
   scalar_pty_->close_slave();
 
-  drivers::sim::ScenarioConfig sc = drivers::sim::scenario_rotation();
-  sc.rate_hz = 200;
-  // The qemu guest's rotation (tests/vm/vm_magvecd_test.cpp): up to 60 deg/s.
-  sc.rotation.heading_rate_deg_s = 30;
-  sc.rotation.pitch_amp_deg = 40;
-  sc.rotation.pitch_period_s = 4.2;
-  sc.rotation.roll_amp_deg = 35;
-  sc.rotation.roll_period_s = 3.7;
-  sc.num_samples = 200 * 40;
+  drivers::sim::ScenarioConfig sc = rotation();
   sc.diurnal_nT = sc.h_n_nT.normalized() * 10.0;  // |h| changes by +-10 nT
   sc.diurnal_period_s = 4;
-  drivers::sim::Simulator sim(sc, 17);
-  drivers::sim::SimSerialFluxgate fluxgate(drivers::sim::SimSerialConfig{});
-  drivers::sim::SimG882 g882(drivers::sim::SimG882Config{});
 
   test::LoggedDaemon d;
   d.event(session_start_event(1, text));
   d.event(start_calibration_event(2));
   Handler h(d);
-  drivers::LinuxClock clock;
-  std::vector<double> truth;  // |h_n| of each sample written, in order
-  std::vector<double> reading_t_s;
-  const auto t0 = std::chrono::steady_clock::now();
-  drivers::sim::SimSample s{};
-  std::uint32_t after_applied = 0;
-  double applied_t_s = std::nan("");
-  while (sim.next(&s) && after_applied < 400) {
-    std::this_thread::sleep_until(
-        t0 + std::chrono::microseconds(static_cast<std::int64_t>(s.t_s * 1e6)));
-    // The attitude of this sample at the times before its line is written and after it has been
-    // read: the sample's receive time lies between, where the buffer interpolates between two
-    // equal attitudes (one INS epoch per sample would put a fraction of the next epoch's turn
-    // into it: at 90 deg/s, 0.5 ms of transit is 0.05 deg, 40 nT).
-    hal::AttitudeSample a;
-    const core::Quat<double> q = core::quat_from_r_bn(s.r_bn_ins);
-    a.q_nb = {q.w(), q.x(), q.y(), q.z()};
-    a.flags = hal::kAttAttitudeValid | hal::kAttHeadingValid | hal::kAttStatusKnown;
-    a.t_us = clock.now_us();
-    ins.queue.push_back(a);
-    auto pump = [](hal::SerialPort& from, magvec::test::PtyPair& to) {
-      std::array<std::uint8_t, 128> buf{};
-      std::size_t n = 0;
-      while (from.read(buf, n, 0) == hal::Status::kOk)
-        if (!to.write_all(std::span<const std::uint8_t>(buf.data(), n))) return false;
-      return true;
-    };
-    if (g882.transmit(s)) reading_t_s.push_back(s.t_s);
-    ASSERT_TRUE(pump(g882, *scalar_pty_));
-    fluxgate.transmit(s);
-    ASSERT_TRUE(pump(fluxgate, *fluxgate_pty_));
-    truth.push_back(s.h_n_true_nT.norm());
-    ASSERT_TRUE(devices->poll(h, 20'000));
-    a.t_us = clock.now_us();
-    ins.queue.push_back(a);
-    if (d.ep.pipeline()->status().state == core::CalState::kApplied) {
-      if (after_applied++ == 0) applied_t_s = s.t_s;
-    }
-  }
+  Played run;
+  play(
+      sc, *devices, ins, h, true, [](std::size_t) {}, &run);
+  ASSERT_FALSE(HasFatalFailure());
+  const std::vector<double>& truth = run.truth;
+  const std::vector<double>& reading_t_s = run.reading_t_s;
+  const double applied_t_s = run.applied_t_s;
   devices->flush(h);
   d.stop();
 
@@ -196,8 +246,8 @@ TEST_F(ScalarPty, CalibratesAndValidatesAgainstTheTimeAlignedScalarField) {
   // every sample got its F from a reading.
   const std::optional<ScalarHealth> health = devices->scalar_health();
   ASSERT_TRUE(health.has_value());
-  EXPECT_LE(health->source.samples, g882.injected().lines);
-  EXPECT_GE(health->source.samples + 1, g882.injected().lines);
+  EXPECT_LE(health->source.samples, run.scalar_lines);
+  EXPECT_GE(health->source.samples + 1, run.scalar_lines);
   EXPECT_EQ(health->source.malformed + health->source.garbage_bytes + health->read_errors, 0u);
   EXPECT_EQ(health->timeouts, 0u);
   EXPECT_EQ(health->f_interpolated + health->f_nearest + health->f_fallback, h.f_nT.size());
@@ -248,6 +298,111 @@ TEST_F(ScalarPty, CalibratesAndValidatesAgainstTheTimeAlignedScalarField) {
   EXPECT_LT(d.sink.records.back().sigma_f_nT, 1.0);
   std::printf("validation RMS %.3f nT, records |h| - true RMS %.3f nT (%zu records)\n",
               st.validation_rms_nT, std::sqrt(ss / static_cast<double>(n)), n);
+}
+
+// Without a scalar magnetometer or a configured reference_field_nT (the defaults), F is the
+// WMM2025's at the INS position: the fluxgate sees the model's field at the site plus a 40-nT
+// anomaly (inside the model's 138 nT), the first position fix arrives 1 s into the calibration
+// (which starts over then), which validates by the scatter about the mean, and its records are
+// flagged as model-referenced with sigma_f including the 138 nT; |h| sits on the model's F, 40 nT
+// below the truth, which is what a model reference can give.
+TEST_F(ScalarPty, WithoutAScalarMagnetometerTheModelAtTheInsPositionIsTheReference) {
+  const std::string text = config_text(false);
+  const Config c = parse_config(text, "test");
+  ASSERT_TRUE(uses_model_reference(c));
+  FakeIns ins;
+  FakePositions positions;
+  auto devices = open_real_devices(
+      c, [](std::uint32_t) {}, &ins, &positions);
+  fluxgate_pty_->close_slave();
+  EXPECT_NE(devices->describe().find("reference field from wmm2025"), std::string::npos)
+      << devices->describe();
+
+  hal::PositionSample fix;
+  fix.lat_deg = 52.0;
+  fix.lon_deg = 5.0;
+  fix.altitude_m = 10;
+  fix.undulation_m = 45;
+  fix.flags = hal::kPosValid | hal::kPosStatusKnown;
+  geomag::Site site;
+  site.lat_deg = fix.lat_deg;
+  site.lon_deg = fix.lon_deg;
+  site.height_m = fix.height_m();
+  const geomag::ReferenceField model =
+      geomag::MagneticModel::wmm2025().field(site, PositionReference::utc_decimal_year_now());
+  constexpr double kAnomaly_nT = 40;
+  drivers::sim::ScenarioConfig sc = rotation();
+  sc.h_n_nT = model.enu_nT * (1 + kAnomaly_nT / model.total_nT);
+
+  test::LoggedDaemon d;
+  d.event(session_start_event(1, text));
+  d.event(start_calibration_event(2));
+  Handler h(d);
+  Played run;
+  core::CalState state_before_fix = core::CalState::kIdle;
+  play(
+      sc, *devices, ins, h, false,
+      [&](std::size_t i) {
+        if (i == 200) {
+          state_before_fix = d.ep.pipeline()->state();
+          hal::PositionSample invalid = fix;  // not yet valid: not used
+          invalid.flags = hal::kPosStatusKnown;
+          invalid.lat_deg = -30;
+          positions.queue.push_back(invalid);
+          positions.queue.push_back(fix);
+        } else if (i > 200 && i % 20 == 0) {
+          positions.queue.push_back(fix);  // 10 Hz, the same place
+        }
+      },
+      &run);
+  ASSERT_FALSE(HasFatalFailure());
+  devices->flush(h);
+  d.stop();
+
+  // Announced once, before the first sample with the model's F; the samples before it had none.
+  ASSERT_EQ(h.model_references.size(), 1u);
+  EXPECT_EQ(h.model_references[0].first, "WMM2025");
+  EXPECT_DOUBLE_EQ(h.model_references[0].second, 138.0);
+  EXPECT_EQ(state_before_fix, core::CalState::kCollecting);  // li skips samples without F
+  ASSERT_EQ(h.f_nT.size(), run.truth.size());
+  std::size_t with_f = 0;
+  for (std::size_t i = 0; i < h.f_nT.size(); ++i) {
+    if (i <= 200) {  // read before the fix was taken (after sample 200's read)
+      EXPECT_TRUE(std::isnan(h.f_nT[i])) << i;
+    }
+    if (std::isfinite(h.f_nT[i])) {
+      EXPECT_DOUBLE_EQ(h.f_nT[i], model.total_nT) << i;
+      ++with_f;
+    }
+  }
+  EXPECT_GT(with_f, h.f_nT.size() / 2);
+
+  const CalibrationStatus st = d.ep.pipeline()->status();
+  ASSERT_EQ(st.state, core::CalState::kApplied)
+      << core::cal_failure_name(st.failure) << " " << st.solver_reason;
+  EXPECT_TRUE(st.output.model_reference);
+  EXPECT_LT(st.validation_rms_nT, 1.0);  // the scatter about the mean
+  double sum = 0, sum_sq = 0;
+  std::size_t n = 0;
+  for (std::size_t i = 0; i < d.sink.records.size() && i < run.truth.size(); ++i) {
+    const hal::OutputRecord& r = d.sink.records[i];
+    if (r.cal_id == 0) continue;
+    EXPECT_NE(r.flags & core::kOutModelReference, 0u) << i;
+    EXPECT_GE(r.sigma_f_nT, 138.0) << i;
+    const double e = r.f_nT - run.truth[i];
+    sum += e;
+    sum_sq += e * e;
+    ++n;
+  }
+  ASSERT_GT(n, 300u);
+  const double mean = sum / static_cast<double>(n);
+  const double scatter = std::sqrt(std::fmax(sum_sq / static_cast<double>(n) - mean * mean, 0.0));
+  EXPECT_NEAR(mean, -kAnomaly_nT, 2.0);
+  EXPECT_LT(scatter, 1.0);
+  std::printf(
+      "model F %.1f nT at the site; records |h| - true: mean %.2f nT, scatter %.3f nT "
+      "(%zu records); applied after %.1f s\n",
+      model.total_nT, mean, scatter, n, run.applied_t_s);
 }
 
 TEST_F(ScalarPty, ConfigurationErrorsNameTheKey) {

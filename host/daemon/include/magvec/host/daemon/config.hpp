@@ -8,6 +8,7 @@
 #pragma once
 
 #include <array>
+#include <cmath>
 #include <cstdint>
 #include <limits>
 #include <stdexcept>
@@ -95,6 +96,9 @@ struct CalibrationConfig {
   std::uint32_t li_min_samples{300};  // li: kept (decimated) samples before solving
   // Scalar reference |h| for real devices (nan: none; the simulated rig provides its own).
   double reference_field_nT{std::numeric_limits<double>::quiet_NaN()};
+  // Real devices with neither a scalar magnetometer nor reference_field_nT: F from this
+  // geomagnetic model at the INS position (position_reference.hpp); "none": no reference then.
+  std::string reference_model{"wmm2025"};
   // The calibrator's solve runs on a worker thread (the result is installed, and logged, as a
   // SOLVE_RESULT pipeline event), so no sample waits for it; false: inline, as on the MCU.
   bool solve_on_worker{true};
@@ -157,6 +161,13 @@ struct Config {
   CalibrationConfig calibration{};
   SimConfig sim{};
 };
+
+// Real mode takes F from the geomagnetic model at the INS position: no scalar magnetometer, no
+// configured reference_field_nT, and reference_model not "none".
+inline bool uses_model_reference(const Config& c) noexcept {
+  return !c.scalar.enabled && !std::isfinite(c.calibration.reference_field_nT) &&
+         c.calibration.reference_model != "none";
+}
 
 // Parses and validates; throws ConfigError naming `source`, the key and the problem.
 // Unknown keys are errors (a typo must not silently fall back to a default).

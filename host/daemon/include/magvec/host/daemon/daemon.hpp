@@ -44,6 +44,7 @@ class Daemon final : public EventHandler {
   void on_attitude(const hal::AttitudeSample& a) override;
   void on_magnetometer(const hal::MagnetometerSample& s, double f_ref_nT) override;
   void on_read_error(hal::Status s) override;
+  void on_model_reference(const std::string& model, double sigma_nT) override;
 
  private:
   Config load_config();

@@ -81,6 +81,9 @@ class DeviceFeed {
           [&h](const hal::MagnetometerSample& m, double f) { h.on_magnetometer(m, f); });
     }
   }
+  // The F of the samples read from now on, without a scalar magnetometer (the model's at the INS
+  // position, position_reference.hpp).
+  void set_reference_nT(double f_nT) noexcept { reference_nT_ = f_nT; }
   // nullptr without a scalar magnetometer.
   const pipeline::ScalarAlignerCounters* aligner_counters() const noexcept {
     return aligner_ ? &aligner_->counters() : nullptr;

@@ -15,6 +15,7 @@
 
 #include "magvec/hal/attitude_source.hpp"
 #include "magvec/hal/magnetometer_source.hpp"
+#include "magvec/hal/position_source.hpp"
 #include "magvec/host/daemon/config.hpp"
 #include "magvec/host/daemon/scalar_health.hpp"
 
@@ -25,6 +26,9 @@ struct EventHandler {
   virtual void on_attitude(const hal::AttitudeSample& a) = 0;
   virtual void on_magnetometer(const hal::MagnetometerSample& s, double f_ref_nT) = 0;
   virtual void on_read_error(hal::Status s) = 0;
+  // From now on the samples' F comes from the geomagnetic model `model` with 1-sigma sigma_nT
+  // (position_reference.hpp); called once, before the first sample that carries it.
+  virtual void on_model_reference(const std::string& /*model*/, double /*sigma_nT*/) {}
 
  protected:
   ~EventHandler() = default;
@@ -56,8 +60,13 @@ class Devices {
 // process does not replay the backlog at full speed). Throws DaemonError(kExitDevice).
 std::unique_ptr<Devices> open_sim_devices(const Config& c, WaitFn wait, NowFn now);
 // The real devices of `c`. Throws DaemonError(kExitDevice) naming the device that failed.
-// `ins`, when given, is read instead of the configured CAN bus (tests on hosts without SocketCAN).
+// `ins`, when given, is read instead of the configured CAN bus (tests on hosts without SocketCAN),
+// and `positions` (if given) instead of the INS position fixes decoded from that bus.
+// With uses_model_reference(c), F comes from the WMM2025 at the INS position
+// (position_reference.hpp) from the first valid fix on; throws DaemonError(kExitConfig) when the
+// model's data are missing.
 std::unique_ptr<Devices> open_real_devices(const Config& c, WaitFn wait,
-                                           hal::AttitudeSource* ins = nullptr);
+                                           hal::AttitudeSource* ins = nullptr,
+                                           hal::PositionSource* positions = nullptr);
 
 }  // namespace magvec::host::daemon

@@ -61,7 +61,8 @@ inline std::string guidance_text(const core::Guidance<double>& g) {
     case core::GuidanceHint::kNoField:
       return "no magnetometer reading yet";
     case core::GuidanceHint::kNoReference:
-      return "needs the scalar reference: samples without F are refused";
+      return "needs the scalar reference: samples without F are refused (scalar magnetometer, "
+             "calibration.reference_field_nT, or a valid INS position for the model)";
     case core::GuidanceHint::kNoAttitude:
       return "keep still: attitude missing (INS not aligned or not received)";
     case core::GuidanceHint::kTurn:

@@ -49,6 +49,11 @@ magvec_lcm::pipeline_event start_calibration_event(std::int64_t sequence);
 magvec_lcm::pipeline_event solve_on_worker_event(std::int64_t sequence);
 magvec_lcm::pipeline_event solve_result_event(std::int64_t sequence, const SolveResult& r);
 SolveResult solve_result_from(const magvec_lcm::pipeline_event& e) noexcept;
+// REFERENCE: F from the model `model` (its name) with 1-sigma `sigma_nT` from now on.
+magvec_lcm::pipeline_event reference_event(std::int64_t sequence, const std::string& model,
+                                           double sigma_nT);
+// The 1-sigma a REFERENCE event carries (NaN when it carries none: the event is ignored).
+double reference_sigma_from(const magvec_lcm::pipeline_event& e) noexcept;
 
 magvec_lcm::calibration_state to_lcm(const CalibrationStatus& s, std::uint64_t t_us,
                                      std::uint32_t persisted_cal_id);

@@ -79,6 +79,11 @@ class Pipeline {
   virtual void override_time_offset_s(double offset_s) noexcept = 0;
   virtual double time_offset_s() const noexcept = 0;
   virtual void start_calibration() noexcept = 0;
+  // The samples' F comes from a geomagnetic model of this 1-sigma from now on (the REFERENCE
+  // event; core::LoopConfig::reference_sigma_nT): validation and records treat it as a model's.
+  // A calibration in progress starts over, so that all its samples share one reference (li and
+  // ekf skipped the samples without F; vector-ekf took them without a scale).
+  virtual void set_reference_sigma_nT(double sigma_nT) noexcept = 0;
   // output: the calibration's alignment and 1-sigmas as validated when it was applied (NaN
   // sigmas: not known; the configured noise then stands in for sigma_f).
   virtual void set_active(const core::SensorModel<double>& model, std::uint32_t cal_id,

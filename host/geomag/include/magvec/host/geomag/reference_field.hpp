@@ -73,6 +73,9 @@ struct ReferenceField {
 
 class MagneticModel {
  public:
+  // 1-sigma of F in the error model above: the same everywhere, so known before any position.
+  static constexpr double kTotalSigma_nT = 138.0;
+
   // Loads `name`.wmm and `name`.wmm.cof (GeographicLib's format) from `dir`. Only WMM2025 is
   // accepted: the error model above belongs to it. Throws GeomagError when the files are missing
   // or invalid.

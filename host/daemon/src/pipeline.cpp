@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 
 #include "magvec/core/calibration_guidance.hpp"
 #include "magvec/core/coverage.hpp"
@@ -28,6 +29,44 @@ std::string solver_reason(const EkfCal&, std::uint8_t code) {
 }
 std::string solver_reason(const VecCal&, std::uint8_t code) {
   return core::vec_cal_code_name(code);
+}
+
+// The figures behind a refused candidate ("" for the failures without figures).
+template <typename Loop>
+std::string validation_reason(const Loop& lp) {
+  char buf[240];
+  const double noise = lp.candidate_noise_nT();
+  switch (lp.failure()) {
+    case core::CalFailure::kValidationFailed: {
+      const double rms = lp.last_validation_rms_nT();
+      const double bound = lp.last_validation_bound_nT();
+      if (rms <= bound) {  // within the bound, but worse than the active calibration
+        std::snprintf(buf, sizeof buf,
+                      "held-out |h| - F %.3g nT, worse than the active calibration's %.3g nT", rms,
+                      lp.last_validation_active_rms_nT());
+      } else {
+        std::snprintf(buf, sizeof buf,
+                      "held-out |h| - F %.3g nT above the bound %.3g nT (noise %.3g nT)", rms,
+                      bound, noise);
+      }
+      return buf;
+    }
+    case core::CalFailure::kVectorValidationFailed:
+      std::snprintf(buf, sizeof buf,
+                    "held-out E/N/U scatter %.3g nT above the bound %.3g nT (noise %.3g nT and "
+                    "the attitude noise)",
+                    lp.last_validation_vector_rms_nT(), lp.last_validation_vector_bound_nT(),
+                    noise);
+      return buf;
+    case core::CalFailure::kReferenceMismatch:
+      std::snprintf(buf, sizeof buf,
+                    "held-out mean |h| - F %.4g nT, too far for the model's 1-sigma %.3g nT (a "
+                    "local anomaly, a wrong position, or a wrong scale)",
+                    lp.last_validation_mean_nT(), lp.reference_sigma_nT());
+      return buf;
+    default:
+      return "";
+  }
 }
 
 // What each calibrator has and needs before a solve can be tried (calibration_guidance.hpp).
@@ -172,9 +211,10 @@ class PipelineImpl final : public Pipeline {
     s.calibrator = name_;
     s.state = lp.state();
     s.failure = lp.failure();
-    if (lp.state() == core::CalState::kFailed &&
-        lp.failure() == core::CalFailure::kSolverRejected) {
-      s.solver_reason = solver_reason(*cal_, lp.solver_code());
+    if (lp.state() == core::CalState::kFailed) {
+      s.solver_reason = lp.failure() == core::CalFailure::kSolverRejected
+                            ? solver_reason(*cal_, lp.solver_code())
+                            : validation_reason(lp);
     }
     s.progress = lp.progress();
     s.validation_rms_nT = lp.last_validation_rms_nT();

@@ -115,6 +115,12 @@ TEST(SensorLoop, KeepsThePreviousCalibrationWhenTheNewOneFailsValidation) {
     (void)loop.process(feed.next(truth_model(), &r), &r);
   EXPECT_EQ(loop.state(), CalState::kFailed);
   EXPECT_EQ(loop.failure(), CalFailure::kValidationFailed);
+  // What the refusal names: the figure, the bound (3 x 0.3 nT, at least 1 nT) and the noise.
+  EXPECT_GT(loop.last_validation_rms_nT(), loop.last_validation_bound_nT());
+  EXPECT_DOUBLE_EQ(loop.last_validation_bound_nT(), 1.0);
+  EXPECT_DOUBLE_EQ(loop.candidate_noise_nT(), 0.3);
+  EXPECT_LT(loop.last_validation_active_rms_nT(), 1.0);             // the active one is the truth
+  EXPECT_TRUE(std::isnan(loop.last_validation_vector_bound_nT()));  // not reached
   EXPECT_EQ(loop.cal_id(), 4u);
   EXPECT_LT((loop.active_model().o - truth_model().o).norm(), 1e-12);
   EXPECT_EQ(loop.health().calibrations_failed, 1u);
@@ -337,6 +343,8 @@ TEST(SensorLoop, VectorValidationRefusesAWrongMisalignment) {
   EXPECT_EQ(loop.failure(), CalFailure::kVectorValidationFailed);
   EXPECT_LT(loop.last_validation_rms_nT(), 1.0);           // the intensity was fine
   EXPECT_GT(loop.last_validation_vector_rms_nT(), 300.0);  // ~1 deg of 54 uT over the attitudes
+  EXPECT_GT(loop.last_validation_vector_rms_nT(), loop.last_validation_vector_bound_nT());
+  EXPECT_GT(loop.last_validation_vector_bound_nT(), 3 * 0.3);  // 3 x the noise and attitude floor
 
   // The right one passes both, and its scatter is at the noise.
   FakeCalibrator good;

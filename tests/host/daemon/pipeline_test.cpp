@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
 #include <deque>
 #include <filesystem>
@@ -185,6 +186,33 @@ TEST(DaemonPipeline, SameRecordsAsTheHilHarnessThroughLcmMessages) {
   EXPECT_EQ(st.state, core::CalState::kApplied);
   EXPECT_EQ(st.calibrator, "li");
   EXPECT_LT(st.validation_rms_nT, 1.0);
+}
+
+// A refused candidate names the figure and the bound it was judged by (the state message and
+// the log carry it): a bound set below the noise refuses the good candidate of the run above.
+TEST(DaemonPipeline, AValidationRefusalNamesItsFigures) {
+  std::string text = fast_config_text("li");
+  text.replace(text.find("validation_max_rms_factor = 3.0"), 31, "validation_max_rms_factor = 0.5");
+  text.replace(text.find("validation_min_rms_nT = 1.0"), 27, "validation_min_rms_nT = 0.0");
+  const Config c = parse_config(text, "test");
+  drivers::sim::Simulator sim(sim_scenario(c), c.sim.seed);
+  auto front = std::make_unique<hil::SimFrontEnd>(sim, sim_rig_config(c));
+  ASSERT_EQ(front->init(), hal::Status::kOk);
+  LoggedDaemon d;
+  d.event(session_start_event(1, text));
+  d.event(start_calibration_event(2));
+  for (int i = 0; i < 1500 && d.ep.pipeline()->state() != core::CalState::kFailed; ++i) {
+    ASSERT_TRUE(front->rig().step());
+    front->poll(d);
+  }
+  const CalibrationStatus st = d.ep.pipeline()->status();
+  ASSERT_EQ(st.state, core::CalState::kFailed);
+  EXPECT_EQ(st.failure, core::CalFailure::kValidationFailed);
+  EXPECT_NE(st.solver_reason.find("held-out |h| - F "), std::string::npos) << st.solver_reason;
+  EXPECT_NE(st.solver_reason.find(" nT above the bound "), std::string::npos) << st.solver_reason;
+  EXPECT_NE(st.solver_reason.find("(noise "), std::string::npos) << st.solver_reason;
+  EXPECT_EQ(to_lcm(st, 0, 0).solver_reason, st.solver_reason);  // the state message carries it
+  std::printf("refusal: %s %s\n", core::cal_failure_name(st.failure), st.solver_reason.c_str());
 }
 
 class DaemonReplay : public ::testing::Test {

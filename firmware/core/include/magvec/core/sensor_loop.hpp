@@ -272,6 +272,13 @@ class SensorLoop {
   // E/N/U scatter of the last validated candidate (NaN: not checked: not aligned, or too few
   // held-out samples with attitude).
   Scalar last_validation_vector_rms_nT() const noexcept { return last_vector_rms_; }
+  // The bounds the last candidate was judged by (NaN: not reached) and the magnetometer noise
+  // they were computed from: what a refusal's message names.
+  Scalar last_validation_bound_nT() const noexcept { return last_validation_bound_; }
+  Scalar last_validation_vector_bound_nT() const noexcept { return last_vector_bound_; }
+  Scalar candidate_noise_nT() const noexcept { return candidate_noise_; }
+  // The active calibration's figure on the same held-out samples (validate_against_active).
+  Scalar last_validation_active_rms_nT() const noexcept { return last_active_rms_; }
 
   // Increments each time the loop enters kSolving (with external_solve: a solve is wanted; the
   // calibrator's data stay frozen while the state is kSolving).
@@ -442,6 +449,9 @@ class SensorLoop {
     last_validation_mean_ = mean_c;
     const Scalar bound = std::fmax(config_.validation_max_rms_factor * candidate_noise_,
                                    config_.validation_min_rms_nT);
+    last_validation_bound_ = bound;
+    last_active_rms_ = rms_a;
+    last_vector_bound_ = std::numeric_limits<Scalar>::quiet_NaN();
     const bool better = cal_id_ == 0 || !config_.validate_against_active || rms_c <= rms_a;
     if (rms_c > bound || !better) {
       fail(CalFailure::kValidationFailed, 0);
@@ -470,6 +480,7 @@ class SensorLoop {
       const Scalar floor = std::sqrt(candidate_noise_ * candidate_noise_ + att * att);
       const Scalar vector_bound = std::fmax(config_.validation_max_vector_rms_factor * floor,
                                             config_.validation_min_rms_nT);
+      last_vector_bound_ = vector_bound;
       // No floor (neither a configured nor an estimated attitude noise): nothing to judge by.
       if (std::isfinite(floor) && last_vector_rms_ > vector_bound) {
         fail(CalFailure::kVectorValidationFailed, 0);
@@ -515,6 +526,9 @@ class SensorLoop {
   Scalar sum_sq_active_{0};
   Scalar last_validation_rms_{0};
   Scalar last_validation_mean_{0};
+  Scalar last_validation_bound_{std::numeric_limits<Scalar>::quiet_NaN()};
+  Scalar last_vector_bound_{std::numeric_limits<Scalar>::quiet_NaN()};
+  Scalar last_active_rms_{std::numeric_limits<Scalar>::quiet_NaN()};
   Scalar sum_candidate_{0};
   Scalar sum_active_{0};
   bool active_model_reference_{false};

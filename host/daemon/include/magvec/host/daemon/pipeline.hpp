@@ -28,7 +28,9 @@ struct CalibrationStatus {
   std::string calibrator;  // li | ekf | vector-ekf | none
   core::CalState state{core::CalState::kIdle};
   core::CalFailure failure{core::CalFailure::kNone};
-  std::string solver_reason;  // calibrator verdict when the solver refused ("" otherwise)
+  // Why the last candidate failed: the calibrator's verdict when the solver refused, the figures
+  // and bound when validation refused ("" otherwise).
+  std::string solver_reason;
   double progress{0};
   double validation_rms_nT{0};
   std::uint32_t cal_id{0};

@@ -79,7 +79,7 @@ constexpr double kRateHz = 45.0;  // magnetometer: not a divisor of the INS rate
 constexpr double kInsRateHz = 100.0;
 constexpr std::uint32_t kInsLatencyUs = 10'000;  // INS epoch time -> its frames on the bus
 constexpr std::uint32_t kHorizonUs = 50'000;     // >= INS period + latency + guest jitter
-constexpr std::uint32_t kSamples = 720;          // 16 s of scenario
+constexpr std::uint32_t kSamples = 900;          // 20 s of scenario
 constexpr double kStartS = 0.1;                  // scenario time of the first sample
 constexpr std::uint64_t kSeed = 7;
 // Rotation like a calibration manoeuvre: heading 30 deg/s, pitch +-40 deg and roll +-35 deg both
@@ -140,6 +140,10 @@ magvec::drivers::sim::ScenarioConfig scenario() {
   return sc;
 }
 
+// li_min_samples: 100 samples of this rotation (2-3 s) pass the coverage rule but leave
+// directions the held-out samples visit; validation refused 13 of 30 seeds there, and most of
+// them when a stalled guest stamps samples late (docs/equations.md E-TO-3). 150: none of 30
+// seeds refused, 2 of 30 with late stamps; applied by sample 423 (and the worker's solve time).
 std::string config_text(double reference_nT) {
   char buf[2048];
   std::snprintf(buf, sizeof buf,
@@ -149,7 +153,7 @@ std::string config_text(double reference_nT) {
                 "drdy_chip = \"%s\"\ndrdy_line = %s\n"
                 "[devices.ins]\ncan_interface = \"%s\"\nrate_hz = %.1f\nlatency_comp_us = %u\n"
                 "fusion_horizon_us = %u\n"
-                "[calibration]\nmode = \"li\"\nli_min_samples = 100\nvalidation_samples = 100\n"
+                "[calibration]\nmode = \"li\"\nli_min_samples = 150\nvalidation_samples = 100\n"
                 "reference_field_nT = %.6f\nsolve_on_worker = true\n",
                 kWork, kUrl, kRateHz, env("MAGVEC_TEST_SPIDEV", "/dev/spidev0.0").c_str(),
                 env("MAGVEC_TEST_GPIOCHIP").c_str(), env("MAGVEC_TEST_GPIO_LINE", "0").c_str(),
@@ -969,22 +973,6 @@ TEST_F(MagvecdVm, NoConversionLostWhileTheSolveRuns) {
   if (!not_judged.empty()) GTEST_SKIP() << not_judged;
 }
 
-TEST_F(MagvecdVm, CalibratesAppliesAndPersists) {
-  bool applied = false;
-  std::int32_t persisted = 0;
-  for (const auto& s : g_run.states) {
-    applied = applied || (s.state == "applied" && s.cal_id >= 1);
-    persisted = std::max(persisted, s.persisted_cal_id);
-  }
-  EXPECT_TRUE(applied) << g_run.states.size() << " state messages\n" << g_run.daemon_stderr;
-  EXPECT_GE(persisted, 1);
-  EXPECT_TRUE(g_run.cal_file) << "state/cal.json";
-  std::size_t calibrated = 0;
-  for (const OutputSample& o : g_run.outputs)
-    calibrated += o.cal_id >= 1 ? 1 : 0;
-  EXPECT_GE(calibrated, kSamples / 3) << "outputs with the calibration applied";
-}
-
 // The rig's own timing error for a conversion (us): the scenario time at which the daemon's
 // interpolation between the kernel stamps of the bracketing INS epochs (less the compensated
 // latency) places the DRDY stamp, minus the conversion's true time. The VM's scheduling, not the
@@ -1003,6 +991,72 @@ double rig_time_error_us(const VmRun& r, const RigSample& s, std::int64_t drdy_u
   return ((static_cast<double>(e) + w) / kInsRateHz - s.t_s) * 1e6;
 }
 
+// The calibration's data: the rig's timing of the conversions before the first solve (the li
+// one-step fit uses their attitudes, so a late DRDY edge there is an attitude error in the fit).
+// Above kRigTimeErrorUs RMS the calibration is the emulator's.
+constexpr double kRigTimeErrorUs = 100.0;  // 0.006 deg at 60 deg/s
+struct CalDataTiming {
+  double rms_us{0};
+  std::size_t n{0};
+  std::size_t off_time{0};
+  bool judged() const { return rms_us <= kRigTimeErrorUs; }
+  std::string not_judged() const {
+    char why[240];
+    std::snprintf(why, sizeof why,
+                  "NOT JUDGED: the calibration's data were delivered by the rig with a time error "
+                  "RMS of %.0f us (limit %.0f us; %zu of %zu off time): the calibration is the "
+                  "emulator's",
+                  rms_us, kRigTimeErrorUs, off_time, n);
+    return why;
+  }
+};
+CalDataTiming cal_data_timing(const VmRun& r) {
+  CalDataTiming t;
+  double sq = 0;
+  const std::uint64_t solve_rx = r.solves.empty() ? 0 : r.solves.front().first;
+  for (const OutputSample& o : r.outputs) {
+    const long k = match_sample(r.samples, o.t_us);
+    if (k < 0 || o.cal_id != 0 || o.rx_us >= solve_rx) continue;
+    const double dt_us = rig_time_error_us(r, r.samples[static_cast<std::size_t>(k)], o.t_us);
+    if (!std::isfinite(dt_us)) continue;
+    sq += dt_us * dt_us;
+    ++t.n;
+    if (std::abs(dt_us) > kRigTimeErrorUs) ++t.off_time;
+  }
+  t.rms_us = t.n ? std::sqrt(sq / static_cast<double>(t.n)) : 0.0;
+  return t;
+}
+
+TEST_F(MagvecdVm, CalibratesAppliesAndPersists) {
+  bool applied = false;
+  std::int32_t persisted = 0;
+  std::string failed;  // the daemon's refusal ("failure reason"), if it refused
+  for (const auto& s : g_run.states) {
+    applied = applied || (s.state == "applied" && s.cal_id >= 1);
+    persisted = std::max(persisted, s.persisted_cal_id);
+    if (s.state == "failed") failed = s.failure + " " + s.solver_reason;
+  }
+  // A candidate fitted to data the rig delivered off time (late DRDY edges of a stalled guest
+  // pair samples with later attitudes) may be refused by validation or the solver, which is the
+  // daemon doing its job (docs/equations.md E-TO-3). Then nothing may have been applied or
+  // persisted; the apply path is NOT JUDGED on that run.
+  const CalDataTiming cal = cal_data_timing(g_run);
+  if (!applied && !failed.empty() && !cal.judged()) {
+    EXPECT_EQ(persisted, 0);
+    EXPECT_FALSE(g_run.cal_file) << "state/cal.json written for a refused calibration";
+    for (const OutputSample& o : g_run.outputs)
+      ASSERT_EQ(o.cal_id, 0) << "an output with a calibration that was refused";
+    GTEST_SKIP() << "refused (" << failed << ") and " << cal.not_judged();
+  }
+  EXPECT_TRUE(applied) << g_run.states.size() << " state messages\n" << g_run.daemon_stderr;
+  EXPECT_GE(persisted, 1);
+  EXPECT_TRUE(g_run.cal_file) << "state/cal.json";
+  std::size_t calibrated = 0;
+  for (const OutputSample& o : g_run.outputs)
+    calibrated += o.cal_id >= 1 ? 1 : 0;
+  EXPECT_GE(calibrated, kSamples / 3) << "outputs with the calibration applied";
+}
+
 // The calibrated outputs against the simulator's TRUE attitude and field at each conversion's
 // scenario time: E/N/U within 1.3x the floor from the true attitude and the configured noise (INS
 // angle noise through the interpolation between epochs, magnetometer noise: enu_floor.hpp), the
@@ -1018,7 +1072,6 @@ double rig_time_error_us(const VmRun& r, const RigSample& s, std::int64_t drdy_u
 // (seen on a slow host, TCG: 0.9-1.1 ms RMS, two thirds of them off time, with the guest stalled
 // under 2 %); the numbers are still printed.
 TEST_F(MagvecdVm, InterpolatedOutputsWithinTheTrueFloor) {
-  constexpr double kRigTimeErrorUs = 100.0;  // 0.006 deg at 60 deg/s
   const VmRun& r = g_run;
   if (stalled_share(r) > kMaxStalledShare)
     GTEST_SKIP() << "NOT JUDGED: the guest was stopped " << 100 * stalled_share(r)
@@ -1032,34 +1085,10 @@ TEST_F(MagvecdVm, InterpolatedOutputsWithinTheTrueFloor) {
   double f_err = 0, f_floor = 0;
   std::size_t n_f = 0, flagged = 0, off_time = 0;
   double time_err_sq = 0;
-  // The calibration's data: the rig's timing of the conversions before the first solve (the li
-  // one-step fit uses their attitudes, so a late DRDY edge there is an attitude error in the fit).
-  double cal_time_err_sq = 0;
-  std::size_t cal_n = 0, cal_off_time = 0;
-  const std::uint64_t solve_rx = r.solves.empty() ? 0 : r.solves.front().first;
-  for (const OutputSample& o : r.outputs) {
-    const long k = match_sample(r.samples, o.t_us);
-    if (k < 0 || o.cal_id != 0 || o.rx_us >= solve_rx) continue;
-    const double dt_us = rig_time_error_us(r, r.samples[static_cast<std::size_t>(k)], o.t_us);
-    if (!std::isfinite(dt_us)) continue;
-    cal_time_err_sq += dt_us * dt_us;
-    ++cal_n;
-    if (std::abs(dt_us) > kRigTimeErrorUs) ++cal_off_time;
-  }
-  const double cal_time_rms_us =
-      cal_n ? std::sqrt(cal_time_err_sq / static_cast<double>(cal_n)) : 0.0;
+  const CalDataTiming cal = cal_data_timing(r);
   std::printf("before the solve: %zu conversions, rig time error RMS %.0f us, %zu off time\n",
-              cal_n, cal_time_rms_us, cal_off_time);
-  std::string not_judged;
-  if (cal_time_rms_us > kRigTimeErrorUs) {
-    char why[240];
-    std::snprintf(why, sizeof why,
-                  "NOT JUDGED: the calibration's data were delivered by the rig with a time error "
-                  "RMS of %.0f us (limit %.0f us; %zu of %zu off time): the calibration is the "
-                  "emulator's",
-                  cal_time_rms_us, kRigTimeErrorUs, cal_off_time, cal_n);
-    not_judged = why;
-  }
+              cal.n, cal.rms_us, cal.off_time);
+  std::string not_judged = cal.judged() ? std::string() : cal.not_judged();
   const bool judged = not_judged.empty();
   for (const OutputSample& o : r.outputs) {
     const long k = match_sample(r.samples, o.t_us);

@@ -1030,11 +1030,15 @@ CalDataTiming cal_data_timing(const VmRun& r) {
 TEST_F(MagvecdVm, CalibratesAppliesAndPersists) {
   bool applied = false;
   std::int32_t persisted = 0;
-  std::string failed;  // the daemon's refusal ("failure reason"), if it refused
+  std::string failed;  // the daemon's refusal of its candidate ("failure reason"), if any
   for (const auto& s : g_run.states) {
     applied = applied || (s.state == "applied" && s.cal_id >= 1);
     persisted = std::max(persisted, s.persisted_cal_id);
-    if (s.state == "failed") failed = s.failure + " " + s.solver_reason;
+    // Refusals of the candidate itself; any other failure (no reference, ...) is judged as one.
+    if (s.state == "failed" &&
+        (s.failure == "validation_failed" || s.failure == "vector_validation_failed" ||
+         s.failure == "solver_rejected"))
+      failed = s.failure + " " + s.solver_reason;
   }
   // A candidate fitted to data the rig delivered off time (late DRDY edges of a stalled guest
   // pair samples with later attitudes) may be refused by validation or the solver, which is the

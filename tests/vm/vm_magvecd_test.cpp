@@ -1035,9 +1035,12 @@ TEST_F(MagvecdVm, CalibratesAppliesAndPersists) {
     applied = applied || (s.state == "applied" && s.cal_id >= 1);
     persisted = std::max(persisted, s.persisted_cal_id);
     // Refusals of the candidate itself; any other failure (no reference, ...) is judged as one.
+    using magvec::core::cal_failure_name;
+    using magvec::core::CalFailure;
     if (s.state == "failed" &&
-        (s.failure == "validation_failed" || s.failure == "vector_validation_failed" ||
-         s.failure == "solver_rejected"))
+        (s.failure == cal_failure_name(CalFailure::kValidationFailed) ||
+         s.failure == cal_failure_name(CalFailure::kVectorValidationFailed) ||
+         s.failure == cal_failure_name(CalFailure::kSolverRejected)))
       failed = s.failure + " " + s.solver_reason;
   }
   // A candidate fitted to data the rig delivered off time (late DRDY edges of a stalled guest

@@ -9,9 +9,7 @@
 namespace magvec::host::daemon {
 
 PositionReference::PositionReference(geomag::MagneticModel model, YearFn year)
-    : model_(std::move(model)),
-      year_(std::move(year)),
-      sigma_nT_(geomag::MagneticModel::kTotalSigma_nT) {}
+    : model_(std::move(model)), year_(std::move(year)) {}
 
 bool PositionReference::on_position(const hal::PositionSample& p) {
   if ((p.flags & hal::kPosValid) == 0) {
@@ -42,7 +40,7 @@ std::string PositionReference::describe() const {
   std::snprintf(buf, sizeof buf, "%s at %.4f %c %.4f %c %.0f m, %.2f: F %.1f nT (1-sigma %.0f nT)",
                 field_->model.c_str(), std::fabs(fix_.lat_deg), fix_.lat_deg < 0 ? 'S' : 'N',
                 std::fabs(fix_.lon_deg), fix_.lon_deg < 0 ? 'W' : 'E', fix_.height_m(),
-                field_->decimal_year, field_->total_nT, sigma_nT_);
+                field_->decimal_year, field_->total_nT, sigma_nT());
   return buf;
 }
 

@@ -42,7 +42,7 @@ class PositionReference {
   // NaN until the first usable fix.
   double total_nT() const noexcept { return field_ ? field_->total_nT : kNaN; }
   // The model's 1-sigma of F (known before the first fix: it does not depend on the place).
-  double sigma_nT() const noexcept { return sigma_nT_; }
+  static constexpr double sigma_nT() noexcept { return geomag::MagneticModel::kTotalSigma_nT; }
   const std::optional<geomag::ReferenceField>& field() const noexcept { return field_; }
   const hal::PositionSample& last_fix() const noexcept { return fix_; }
   const PositionReferenceCounters& counters() const noexcept { return counters_; }
@@ -60,7 +60,6 @@ class PositionReference {
 
   geomag::MagneticModel model_;
   YearFn year_;
-  double sigma_nT_;
   std::optional<geomag::ReferenceField> field_;
   hal::PositionSample fix_{};
   PositionReferenceCounters counters_{};

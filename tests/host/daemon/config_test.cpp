@@ -1,7 +1,7 @@
 // magvecd's TOML configuration (host/daemon/config.hpp): numbers that have no exact double and
 // text toml++ must never see (invalid UTF-8, non-ASCII outside comments) are configuration errors
 // naming the file, the key or the line and column; lcm.raw_batch and its channel and sim.faults
-// are checked.
+// are checked; so are the model reference's keys.
 #include "magvec/host/daemon/config.hpp"
 
 #include <gtest/gtest.h>
@@ -208,6 +208,26 @@ TEST(DaemonConfigLcm, RawBatchChannelDiffersFromTheSampleChannel) {
   EXPECT_EQ(parse_config("[lcm.channels]\nraw_mag_batch = \"B\"\n", "cfg.toml")
                 .lcm.channels.raw_mag_batch,
             "B");
+}
+
+// The model reference's keys: a model magvecd does not ship, an ID beyond 11 bits; and when the
+// model is used at all (no scalar magnetometer, no reference_field_nT, not "none").
+TEST(DaemonConfigReference, ModelAndPositionIdsAreChecked) {
+  EXPECT_NE(error_of("[calibration]\nreference_model = \"igrf13\"\n")
+                .find("cfg.toml: calibration.reference_model: 'igrf13' is not one of"),
+            std::string::npos)
+      << error_of("[calibration]\nreference_model = \"igrf13\"\n");
+  EXPECT_NE(error_of("[devices.ins.can_ids]\nekf_pos = 2048\n").find("devices.ins.can_ids.ekf_pos"),
+            std::string::npos);
+  EXPECT_NE(error_of("[devices.ins.can_ids]\nekf_altitude = -1\n")
+                .find("devices.ins.can_ids.ekf_altitude"),
+            std::string::npos);
+  EXPECT_TRUE(uses_model_reference(parse_config("", "t")));
+  EXPECT_FALSE(
+      uses_model_reference(parse_config("[calibration]\nreference_model = \"none\"\n", "t")));
+  EXPECT_FALSE(
+      uses_model_reference(parse_config("[calibration]\nreference_field_nT = 49000.0\n", "t")));
+  EXPECT_FALSE(uses_model_reference(parse_config("[devices.scalar]\nenabled = true\n", "t")));
 }
 
 }  // namespace

@@ -323,7 +323,7 @@ void report_calibration(const core::SensorLoop<double, VecCal>& loop, const VecC
 
 template <typename Cal>
 void run_with(const DemoOptions& o, std::unique_ptr<Cal> cal) {
-  using Session = hil::HilSession<Cal>;
+  using DemoSession = hil::HilSession<Cal>;
   namespace fs = std::filesystem;
   fs::create_directories(o.out_dir);
   const std::string records_path = (fs::path(o.out_dir) / "records.csv").string();
@@ -348,8 +348,8 @@ void run_with(const DemoOptions& o, std::unique_ptr<Cal> cal) {
   hil::CsvRecordSink csv(
       records_path, {std::string("magvec ") + kVersion + " demo: survey seed " +
                      std::to_string(o.seed) + ", " + o.calibrator + " calibrator in the loop"});
-  ScoringSink<Session> sink(csv, sc);
-  auto session = std::make_unique<Session>(sim, rc, *cal, sink, hc);
+  ScoringSink<DemoSession> sink(csv, sc);
+  auto session = std::make_unique<DemoSession>(sim, rc, *cal, sink, hc);
   sink.attach(session.get());
   if (const hal::Status s = session->init(); s != hal::Status::kOk)
     throw std::runtime_error(std::string("device initialisation failed: ") + hal::to_string(s));

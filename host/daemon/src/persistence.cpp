@@ -15,8 +15,36 @@ namespace magvec::host::daemon {
 CalibrationStore::CalibrationStore(std::string state_dir)
     : path_((std::filesystem::path(std::move(state_dir)) / "cal.json").string()) {}
 
+std::size_t CalibrationStore::remove_leftovers() {
+  // io::AtomicFile names its temporary file <path>.tmp.<pid>.<n>, in the same directory; cal.json
+  // itself only ever changes by rename(), so such a file is a write that was killed (SIGKILL,
+  // power cut) before its rename: never the calibration in force, and safe to remove.
+  namespace fs = std::filesystem;
+  const fs::path target(path_);
+  const std::string prefix = target.filename().string() + ".tmp.";
+  std::size_t removed = 0;
+  std::error_code ec;
+  for (fs::directory_iterator it(target.parent_path(), ec), end; !ec && it != end;
+       it.increment(ec)) {
+    const std::string name = it->path().filename().string();
+    if (name.rfind(prefix, 0) != 0 || !it->is_regular_file(ec)) continue;
+    std::error_code rm;
+    if (fs::remove(it->path(), rm)) {
+      ++removed;
+    } else if (rm) {
+      spdlog::warn("cannot remove {} (left by an interrupted write): {}", it->path().string(),
+                   rm.message());
+    }
+  }
+  if (removed > 0)
+    spdlog::info("removed {} temporary file(s) of an interrupted calibration write next to {}",
+                 removed, path_);
+  return removed;
+}
+
 PersistedCalibration CalibrationStore::load() {
   PersistedCalibration p;
+  leftovers_removed_ = remove_leftovers();
   std::error_code ec;
   if (!std::filesystem::exists(path_, ec)) {
     spdlog::info("no persisted calibration ({}): starting uncalibrated", path_);

@@ -1,21 +1,26 @@
 // magvecd's error-streak exit (Daemon::on_read_error): magnetometer read errors and nothing else
-// for more than 10 s end the daemon with the device exit code and a message naming the cause;
-// errors among good samples never do. The daemon runs in process in --sim mode with its simulated
-// ADC's frames corrupted ([sim] faults = "crc=P"), LCM in memory (memq://). Each run takes ~11 s
-// of wall time: the limit is the daemon's real 10 s on its monotonic clock.
+// for more than 10 s end the daemon with the device exit code and a message naming the cause,
+// leaving the persisted calibration byte-identical, and the restart systemd then makes loads it;
+// errors among good samples never end it. The daemon runs in process in --sim mode with its
+// simulated ADC's frames corrupted ([sim] faults = "crc=P"), LCM in memory (memq://). Each run
+// takes ~11 s of wall time: the limit is the daemon's real 10 s on its monotonic clock.
 #include <gtest/gtest.h>
+#include <spdlog/sinks/ostream_sink.h>
+#include <spdlog/spdlog.h>
 #include <stdlib.h>
 
 #include <csignal>
 #include <filesystem>
 #include <fstream>
 #include <optional>
+#include <sstream>
 #include <string>
 #include <thread>
 
 #include "logged_daemon.hpp"
 #include "magvec/host/daemon/daemon.hpp"
 #include "magvec/host/daemon/daemon_error.hpp"
+#include "magvec/host/daemon/persistence.hpp"
 
 namespace magvec::host::daemon {
 namespace {
@@ -54,9 +59,51 @@ class DaemonErrorStreak : public ::testing::Test {
   fs::path dir_;
 };
 
+std::string file_text(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::ostringstream os;
+  os << in.rdbuf();
+  return os.str();
+}
+
+// The daemon's log while the object lives (spdlog's default logger into a string).
+class CapturedLog {
+ public:
+  CapturedLog()
+      : previous_(spdlog::default_logger()),
+        logger_(std::make_shared<spdlog::logger>(
+            "test", std::make_shared<spdlog::sinks::ostream_sink_mt>(text_))) {
+    spdlog::set_default_logger(logger_);
+  }
+  ~CapturedLog() { spdlog::set_default_logger(previous_); }
+  CapturedLog(const CapturedLog&) = delete;
+  CapturedLog& operator=(const CapturedLog&) = delete;
+  std::string text() const { return text_.str(); }
+
+ private:
+  std::ostringstream text_;
+  std::shared_ptr<spdlog::logger> previous_;
+  std::shared_ptr<spdlog::logger> logger_;
+};
+
 TEST_F(DaemonErrorStreak, OnlyReadErrorsForTenSecondsExitWithTheDeviceCode) {
+  // The calibration in force before the device fails (as magvecd persisted it).
+  const DaemonOptions opt = options("crc=1");
+  fs::create_directories(opt.state_dir);
+  CalibrationStatus st;
+  st.calibrator = "li";
+  st.cal_id = 7;
+  st.validation_rms_nT = 0.3;
+  st.active.w = core::Mat3<double>::Identity() * 1.002;
+  st.active.o = core::Vec3<double>(12.5, -3.25, 4.0);
+  std::string save_error;
+  ASSERT_TRUE(CalibrationStore(opt.state_dir).save(st, 0, "before the fault", &save_error))
+      << save_error;
+  const fs::path cal = fs::path(opt.state_dir) / "cal.json";
+  const std::string last_good = file_text(cal);
+
   volatile std::sig_atomic_t stop = 0, reload = 0;
-  Daemon d(options("crc=1"), DaemonSignals{&stop, &reload});
+  Daemon d(opt, DaemonSignals{&stop, &reload});
   std::optional<DaemonError> error;
   try {
     d.run();
@@ -64,6 +111,7 @@ TEST_F(DaemonErrorStreak, OnlyReadErrorsForTenSecondsExitWithTheDeviceCode) {
     error = e;
   }
   ASSERT_TRUE(error.has_value()) << "the daemon kept running on nothing but read errors";
+  EXPECT_EQ(file_text(cal), last_good) << "the failing device changed the persisted calibration";
   EXPECT_EQ(error->code(), kExitDevice);
   const std::string what = error->what();
   EXPECT_NE(what.find("magnetometer: only read errors for 10 s (last: crc error"),
@@ -73,6 +121,33 @@ TEST_F(DaemonErrorStreak, OnlyReadErrorsForTenSecondsExitWithTheDeviceCode) {
   const auto n = what.rfind(", ");
   ASSERT_NE(n, std::string::npos) << what;
   EXPECT_GT(std::stoull(what.substr(n + 2)), 100u) << what;
+
+  // systemd restarts it (Restart=on-failure); the device works again. The new daemon starts with
+  // the last calibration (its load, logged) and leaves the file as it was.
+  {
+    CapturedLog log;
+    volatile std::sig_atomic_t stop2 = 0, reload2 = 0;
+    Daemon again(options(""), DaemonSignals{&stop2, &reload2});
+    std::thread stopper([&stop2] {
+      std::this_thread::sleep_for(std::chrono::milliseconds(800));
+      stop2 = 1;
+    });
+    int code = -1;
+    std::string restart_error;
+    try {
+      code = again.run();
+    } catch (const DaemonError& e) {
+      restart_error = e.what();
+    }
+    stopper.join();
+    EXPECT_EQ(restart_error, "");
+    EXPECT_EQ(code, kExitOk);
+    const std::string text = log.text();
+    EXPECT_NE(text.find("loaded persisted calibration " + cal.string() + " (cal_id 7"),
+              std::string::npos)
+        << text;
+  }
+  EXPECT_EQ(file_text(cal), last_good);
 }
 
 TEST_F(DaemonErrorStreak, ErrorsAmongGoodSamplesDoNotStopTheDaemon) {

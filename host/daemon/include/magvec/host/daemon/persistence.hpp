@@ -4,6 +4,7 @@
 // (kExitCorruptParams) and the operator repairs or removes it.
 #pragma once
 
+#include <cstddef>
 #include <cstdint>
 #include <string>
 
@@ -34,8 +35,10 @@ class CalibrationStore {
 
   const std::string& path() const noexcept { return path_; }
   // Reads the file (not present: an empty calibration). Throws DaemonError(kExitCorruptParams)
-  // when it exists but cannot be read; the file is left untouched.
+  // when it exists but cannot be read; the file is left untouched. First removes the temporary
+  // files a killed write left next to it (leftovers_removed()).
   PersistedCalibration load();
+  std::size_t leftovers_removed() const noexcept { return leftovers_removed_; }
   // Writes `status`'s active calibration (cal_id, validation RMS, calibrator in the provenance)
   // with `time_offset_s` to `path`; on failure the outcome's error, the previous file intact.
   // Touches no store: safe on another thread (PersistWorker), then mark_persisted(written).
@@ -49,8 +52,10 @@ class CalibrationStore {
   const PersistedCalibration& persisted() const noexcept { return persisted_; }
 
  private:
+  std::size_t remove_leftovers();
   std::string path_;
   PersistedCalibration persisted_{};
+  std::size_t leftovers_removed_{0};
 };
 
 }  // namespace magvec::host::daemon

@@ -86,6 +86,29 @@ class CapturedLog {
   std::shared_ptr<spdlog::logger> logger_;
 };
 
+// Runs a daemon until a stop request (SIGTERM's flag) after `for_time`: its exit code, or the
+// error that ended it first.
+struct StoppedRun {
+  int code{-1};
+  std::string error;
+};
+StoppedRun run_until_stopped(const DaemonOptions& options, std::chrono::milliseconds for_time) {
+  volatile std::sig_atomic_t stop = 0, reload = 0;
+  Daemon d(options, DaemonSignals{&stop, &reload});
+  std::thread stopper([&stop, for_time] {
+    std::this_thread::sleep_for(for_time);
+    stop = 1;
+  });
+  StoppedRun r;
+  try {
+    r.code = d.run();
+  } catch (const DaemonError& e) {
+    r.error = e.what();
+  }
+  stopper.join();
+  return r;
+}
+
 TEST_F(DaemonErrorStreak, OnlyReadErrorsForTenSecondsExitWithTheDeviceCode) {
   // The calibration in force before the device fails (as magvecd persisted it).
   const DaemonOptions opt = options("crc=1");
@@ -126,22 +149,9 @@ TEST_F(DaemonErrorStreak, OnlyReadErrorsForTenSecondsExitWithTheDeviceCode) {
   // the last calibration (its load, logged) and leaves the file as it was.
   {
     CapturedLog log;
-    volatile std::sig_atomic_t stop2 = 0, reload2 = 0;
-    Daemon again(options(""), DaemonSignals{&stop2, &reload2});
-    std::thread stopper([&stop2] {
-      std::this_thread::sleep_for(std::chrono::milliseconds(800));
-      stop2 = 1;
-    });
-    int code = -1;
-    std::string restart_error;
-    try {
-      code = again.run();
-    } catch (const DaemonError& e) {
-      restart_error = e.what();
-    }
-    stopper.join();
-    EXPECT_EQ(restart_error, "");
-    EXPECT_EQ(code, kExitOk);
+    const StoppedRun restart = run_until_stopped(options(""), std::chrono::milliseconds(800));
+    EXPECT_EQ(restart.error, "");
+    EXPECT_EQ(restart.code, kExitOk);
     const std::string text = log.text();
     EXPECT_NE(text.find("loaded persisted calibration " + cal.string() + " (cal_id 7"),
               std::string::npos)
@@ -152,22 +162,9 @@ TEST_F(DaemonErrorStreak, OnlyReadErrorsForTenSecondsExitWithTheDeviceCode) {
 
 TEST_F(DaemonErrorStreak, ErrorsAmongGoodSamplesDoNotStopTheDaemon) {
   // 90 % of the frames corrupted: streaks of errors, each ended by a good sample.
-  volatile std::sig_atomic_t stop = 0, reload = 0;
-  Daemon d(options("crc=0.9"), DaemonSignals{&stop, &reload});
-  std::thread stopper([&stop] {
-    std::this_thread::sleep_for(std::chrono::seconds(12));  // past the 10-s limit
-    stop = 1;
-  });
-  int code = -1;
-  std::string error;
-  try {
-    code = d.run();
-  } catch (const DaemonError& e) {
-    error = e.what();
-  }
-  stopper.join();
-  EXPECT_EQ(error, "");
-  EXPECT_EQ(code, kExitOk);
+  const StoppedRun run = run_until_stopped(options("crc=0.9"), std::chrono::seconds(12));
+  EXPECT_EQ(run.error, "");  // past the 10-s limit
+  EXPECT_EQ(run.code, kExitOk);
 }
 
 }  // namespace

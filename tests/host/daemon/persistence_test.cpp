@@ -341,66 +341,63 @@ std::string file_text(const std::filesystem::path& p) {
   return os.str();
 }
 
-// The child's side of the disk-full case: the last good file, a filler up to ENOSPC, a save that
-// must fail, the file and the store checked, the filler removed, a save that must succeed.
-void disk_full_body(const std::filesystem::path& dir, int fd) {
+// The child's side of a failed-save case: the last good file, `inject` (the fault), a save that
+// must fail, the file and the store checked, `clear` (the fault gone), a save that must succeed.
+// `own_files` are the files `inject` leaves in the directory besides cal.json.
+using FaultStep = bool (*)(const std::filesystem::path& dir, int fd);
+void failed_save_body(const std::filesystem::path& dir, int fd, FaultStep inject, FaultStep clear,
+                      std::size_t own_files) {
   std::string error;
   if (!CalibrationStore(dir.string()).save(fault_status(1), 0, "last good", &error)) {
     report_line(fd, "setup", error);
     return;
   }
   const std::string last_good = file_text(dir / "cal.json");
-  {
-    const int filler = ::open((dir / "filler").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0600);
-    const std::string block(512, 'x');
-    while (::write(filler, block.data(), block.size()) > 0) {
-    }
-    report_line(fd, "filler_errno", std::to_string(errno));
-    ::close(filler);
-  }
+  if (!inject(dir, fd)) return;
   CalibrationStore s(dir.string());
   s.load();
-  const bool saved = s.save(fault_status(2), 0, "disk full", &error);
+  const bool saved = s.save(fault_status(2), 0, "under the fault", &error);
   report_line(fd, "saved", saved ? "1" : "0");
   report_line(fd, "error", error);
   report_line(fd, "identical", file_text(dir / "cal.json") == last_good ? "1" : "0");
   report_line(fd, "persisted_id", std::to_string(s.persisted().cal_id));
-  report_line(fd, "leftovers", std::to_string(leftover_names(dir).size() - 1));  // - filler
+  report_line(fd, "leftovers", std::to_string(leftover_names(dir).size() - own_files));
   report_line(fd, "reload_id", std::to_string(CalibrationStore(dir.string()).load().cal_id));
-  std::filesystem::remove(dir / "filler");
+  if (!clear(dir, fd)) return;
   error.clear();
-  report_line(fd, "recovered", s.save(fault_status(2), 0, "space again", &error) ? "1" : error);
+  report_line(fd, "recovered", s.save(fault_status(2), 0, "fault gone", &error) ? "1" : error);
   report_line(fd, "recovered_id", std::to_string(CalibrationStore(dir.string()).load().cal_id));
 }
 
-// The read-only state directory: the same, with the tmpfs remounted read-only, then read-write.
+bool fill_disk(const std::filesystem::path& dir, int fd) {
+  const int filler = ::open((dir / "filler").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0600);
+  const std::string block(512, 'x');
+  while (::write(filler, block.data(), block.size()) > 0) {
+  }
+  report_line(fd, "filler_errno", std::to_string(errno));
+  ::close(filler);
+  return true;
+}
+bool free_disk(const std::filesystem::path& dir, int /*fd*/) {
+  return std::filesystem::remove(dir / "filler");
+}
+bool remount(const std::filesystem::path& dir, int fd, unsigned long flags, const char* key) {
+  if (::mount(nullptr, dir.c_str(), nullptr, MS_REMOUNT | flags, nullptr) == 0) return true;
+  report_line(fd, key, std::string("remount: ") + std::strerror(errno));
+  return false;
+}
+bool read_only(const std::filesystem::path& dir, int fd) {
+  return remount(dir, fd, MS_RDONLY, "setup");
+}
+bool writable(const std::filesystem::path& dir, int fd) {
+  return remount(dir, fd, 0, "recovered");
+}
+
+void disk_full_body(const std::filesystem::path& dir, int fd) {
+  failed_save_body(dir, fd, fill_disk, free_disk, 1);
+}
 void read_only_body(const std::filesystem::path& dir, int fd) {
-  std::string error;
-  if (!CalibrationStore(dir.string()).save(fault_status(1), 0, "last good", &error)) {
-    report_line(fd, "setup", error);
-    return;
-  }
-  const std::string last_good = file_text(dir / "cal.json");
-  if (::mount(nullptr, dir.c_str(), nullptr, MS_REMOUNT | MS_RDONLY, nullptr) != 0) {
-    report_line(fd, "setup", std::string("remount read-only: ") + std::strerror(errno));
-    return;
-  }
-  CalibrationStore s(dir.string());
-  s.load();
-  const bool saved = s.save(fault_status(2), 0, "read-only", &error);
-  report_line(fd, "saved", saved ? "1" : "0");
-  report_line(fd, "error", error);
-  report_line(fd, "identical", file_text(dir / "cal.json") == last_good ? "1" : "0");
-  report_line(fd, "persisted_id", std::to_string(s.persisted().cal_id));
-  report_line(fd, "leftovers", std::to_string(leftover_names(dir).size()));
-  report_line(fd, "reload_id", std::to_string(CalibrationStore(dir.string()).load().cal_id));
-  if (::mount(nullptr, dir.c_str(), nullptr, MS_REMOUNT, nullptr) != 0) {
-    report_line(fd, "recovered", std::string("remount read-write: ") + std::strerror(errno));
-    return;
-  }
-  error.clear();
-  report_line(fd, "recovered", s.save(fault_status(2), 0, "writable again", &error) ? "1" : error);
-  report_line(fd, "recovered_id", std::to_string(CalibrationStore(dir.string()).load().cal_id));
+  failed_save_body(dir, fd, read_only, writable, 0);
 }
 
 // The error text with the test's directory replaced (the README's table shows no temporary path).

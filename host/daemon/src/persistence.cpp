@@ -8,6 +8,7 @@
 
 #include "calibration/calibration_file.hpp"
 #include "magvec/host/daemon/daemon_error.hpp"
+#include "magvec/host/io/csv.hpp"
 #include "magvec/version.hpp"
 
 namespace magvec::host::daemon {
@@ -16,12 +17,12 @@ CalibrationStore::CalibrationStore(std::string state_dir)
     : path_((std::filesystem::path(std::move(state_dir)) / "cal.json").string()) {}
 
 std::size_t CalibrationStore::remove_leftovers() {
-  // io::AtomicFile names its temporary file <path>.tmp.<pid>.<n>, in the same directory; cal.json
-  // itself only ever changes by rename(), so such a file is a write that was killed (SIGKILL,
-  // power cut) before its rename: never the calibration in force, and safe to remove.
+  // cal.json only ever changes by io::AtomicFile's rename(), so a file with its temporary prefix
+  // is a write that was killed (SIGKILL, power cut) before its rename: never the calibration in
+  // force, and safe to remove.
   namespace fs = std::filesystem;
   const fs::path target(path_);
-  const std::string prefix = target.filename().string() + ".tmp.";
+  const std::string prefix = io::AtomicFile::temporary_prefix(target.filename().string());
   std::size_t removed = 0;
   std::error_code ec;
   for (fs::directory_iterator it(target.parent_path(), ec), end; !ec && it != end;

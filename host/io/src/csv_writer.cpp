@@ -58,8 +58,8 @@ AtomicFile::AtomicFile(std::string path) : path_(std::move(path)) {
   // 0600).
   static std::atomic<unsigned> counter{0};
   for (int attempt = 0; attempt < 100 && fd_ < 0; ++attempt) {
-    tmp_path_ =
-        path_ + ".tmp." + std::to_string(::getpid()) + "." + std::to_string(counter.fetch_add(1));
+    tmp_path_ = temporary_prefix(path_) + std::to_string(::getpid()) + "." +
+                std::to_string(counter.fetch_add(1));
     fd_ = ::open(tmp_path_.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0666);
     if (fd_ < 0 && errno != EEXIST) break;
   }

@@ -29,6 +29,25 @@
 namespace magvec::host::daemon {
 namespace {
 
+std::string file_text(const std::filesystem::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  std::ostringstream os;
+  os << in.rdbuf();
+  return os.str();
+}
+
+CalibrationStatus status(std::uint32_t cal_id) {
+  CalibrationStatus st;
+  st.calibrator = "li";
+  st.cal_id = cal_id;
+  st.validation_rms_nT = 0.25;
+  st.active.w << 1.01, 0.002, -0.001, 0, 0.99, 0.003, 0, 0, 1.02;
+  st.active.o = core::Vec3<double>(120.5, -33.25, 7.125);
+  st.active.rm = core::Quat<double>(0.9999, 0.01, -0.005, 0.002).normalized();
+  st.output = OutputQuality{false, 0.75, 12.5};
+  return st;
+}
+
 class CalibrationStoreTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -38,23 +57,6 @@ class CalibrationStoreTest : public ::testing::Test {
     std::filesystem::create_directories(dir_);
   }
   void TearDown() override { std::filesystem::remove_all(dir_); }
-  static std::string read(const std::filesystem::path& p) {
-    std::ifstream in(p, std::ios::binary);
-    std::ostringstream os;
-    os << in.rdbuf();
-    return os.str();
-  }
-  static CalibrationStatus status(std::uint32_t cal_id) {
-    CalibrationStatus st;
-    st.calibrator = "li";
-    st.cal_id = cal_id;
-    st.validation_rms_nT = 0.25;
-    st.active.w << 1.01, 0.002, -0.001, 0, 0.99, 0.003, 0, 0, 1.02;
-    st.active.o = core::Vec3<double>(120.5, -33.25, 7.125);
-    st.active.rm = core::Quat<double>(0.9999, 0.01, -0.005, 0.002).normalized();
-    st.output = OutputQuality{false, 0.75, 12.5};
-    return st;
-  }
   std::filesystem::path dir_;
 };
 
@@ -98,19 +100,19 @@ TEST_F(CalibrationStoreTest, CorruptFileIsRefusedAndLeftUntouched) {
     EXPECT_EQ(e.code(), kExitCorruptParams);
     EXPECT_NE(std::string(e.what()).find("cal.json"), std::string::npos);
   }
-  EXPECT_EQ(read(dir_ / "cal.json"), text);
+  EXPECT_EQ(file_text(dir_ / "cal.json"), text);
 }
 
 TEST_F(CalibrationStoreTest, TruncatedFileIsRefusedAndLeftUntouched) {
   CalibrationStore s(dir_.string());
   std::string error;
   ASSERT_TRUE(s.save(status(4), 0, "test", &error)) << error;
-  const std::string whole = read(dir_ / "cal.json");
+  const std::string whole = file_text(dir_ / "cal.json");
   for (const std::size_t keep : {std::size_t{0}, whole.size() / 2, whole.size() - 2}) {
     const std::string cut = whole.substr(0, keep);
     std::ofstream(dir_ / "cal.json", std::ios::binary | std::ios::trunc) << cut;
     EXPECT_THROW(CalibrationStore(dir_.string()).load(), DaemonError) << keep << " bytes";
-    EXPECT_EQ(read(dir_ / "cal.json"), cut) << keep << " bytes";
+    EXPECT_EQ(file_text(dir_ / "cal.json"), cut) << keep << " bytes";
   }
 }
 
@@ -145,12 +147,12 @@ std::vector<std::string> leftover_names(const std::filesystem::path& dir) {
   return names;
 }
 
-// Runs save(status(cal_id)) in a child traced with PTRACE_SYSCALL and kills it (SIGKILL) at its
+// Runs save(st) in a child traced with PTRACE_SYSCALL and kills it (SIGKILL) at its
 // `kill_at`-th system-call stop (entry and exit stops both count: killed before a call runs and
 // after it returned). Returns the number of stops seen when the child finished without being
 // killed (kill_at beyond its last stop), 0 when it was killed, -1 when tracing is not possible.
-int persist_killed_at(const std::filesystem::path& dir, std::uint32_t cal_id, int kill_at,
-                      const CalibrationStatus& st, std::string* why) {
+int persist_killed_at(const std::filesystem::path& dir, const CalibrationStatus& st, int kill_at,
+                      std::string* why) {
   const pid_t pid = ::fork();
   if (pid < 0) {
     *why = std::string("fork: ") + std::strerror(errno);
@@ -161,9 +163,7 @@ int persist_killed_at(const std::filesystem::path& dir, std::uint32_t cal_id, in
     ::raise(SIGSTOP);
     CalibrationStore s(dir.string());
     std::string error;
-    CalibrationStatus mine = st;
-    mine.cal_id = cal_id;
-    ::_exit(s.save(mine, 0, "killed-writer test", &error) ? 0 : 91);
+    ::_exit(s.save(st, 0, "killed-writer test", &error) ? 0 : 91);
   }
   int wst = 0;
   if (::waitpid(pid, &wst, 0) != pid || !WIFSTOPPED(wst)) {
@@ -209,7 +209,7 @@ int persist_killed_at(const std::filesystem::path& dir, std::uint32_t cal_id, in
 }
 
 TEST_F(CalibrationStoreTest, AWriterKilledAtEverySystemCallLeavesTheLastGoodOrTheNewFile) {
-  const CalibrationStatus st = status(0);
+  const CalibrationStatus st = status(2);
   int kills = 0, kept_old = 0, complete_new = 0, leftovers = 0;
   for (int k = 1; k < 10000; ++k) {
     // The last good file, written fresh before each kill.
@@ -217,10 +217,10 @@ TEST_F(CalibrationStoreTest, AWriterKilledAtEverySystemCallLeavesTheLastGoodOrTh
     std::filesystem::create_directories(dir_);
     std::string error;
     ASSERT_TRUE(CalibrationStore(dir_.string()).save(status(1), 0, "last good", &error)) << error;
-    const std::string last_good = read(dir_ / "cal.json");
+    const std::string last_good = file_text(dir_ / "cal.json");
 
     std::string why;
-    const int finished = persist_killed_at(dir_, 2, k, st, &why);
+    const int finished = persist_killed_at(dir_, st, k, &why);
     if (finished < 0) GTEST_SKIP() << "cannot trace a child here: " << why;
     CalibrationStore after(dir_.string());
     const PersistedCalibration p = after.load();  // never throws: nothing half-written
@@ -234,7 +234,7 @@ TEST_F(CalibrationStoreTest, AWriterKilledAtEverySystemCallLeavesTheLastGoodOrTh
       break;
     }
     ++kills;
-    if (read(dir_ / "cal.json") == last_good) {
+    if (file_text(dir_ / "cal.json") == last_good) {
       ++kept_old;
       EXPECT_EQ(p.cal_id, 1u);
     } else {
@@ -323,24 +323,6 @@ void report_line(int fd, const std::string& key, const std::string& value) {
   (void)!::write(fd, l.data(), l.size());
 }
 
-CalibrationStatus fault_status(std::uint32_t cal_id) {
-  CalibrationStatus st;
-  st.calibrator = "li";
-  st.cal_id = cal_id;
-  st.validation_rms_nT = 0.25;
-  st.active.w = core::Mat3<double>::Identity() * 1.01;
-  st.active.o = core::Vec3<double>(120.5, -33.25, 7.125);
-  st.output = OutputQuality{true, 0.5, 10.0};
-  return st;
-}
-
-std::string file_text(const std::filesystem::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  std::ostringstream os;
-  os << in.rdbuf();
-  return os.str();
-}
-
 // The child's side of a failed-save case: the last good file, `inject` (the fault), a save that
 // must fail, the file and the store checked, `clear` (the fault gone), a save that must succeed.
 // `own_files` are the files `inject` leaves in the directory besides cal.json.
@@ -348,7 +330,7 @@ using FaultStep = bool (*)(const std::filesystem::path& dir, int fd);
 void failed_save_body(const std::filesystem::path& dir, int fd, FaultStep inject, FaultStep clear,
                       std::size_t own_files) {
   std::string error;
-  if (!CalibrationStore(dir.string()).save(fault_status(1), 0, "last good", &error)) {
+  if (!CalibrationStore(dir.string()).save(status(1), 0, "last good", &error)) {
     report_line(fd, "setup", error);
     return;
   }
@@ -356,7 +338,7 @@ void failed_save_body(const std::filesystem::path& dir, int fd, FaultStep inject
   if (!inject(dir, fd)) return;
   CalibrationStore s(dir.string());
   s.load();
-  const bool saved = s.save(fault_status(2), 0, "under the fault", &error);
+  const bool saved = s.save(status(2), 0, "under the fault", &error);
   report_line(fd, "saved", saved ? "1" : "0");
   report_line(fd, "error", error);
   report_line(fd, "identical", file_text(dir / "cal.json") == last_good ? "1" : "0");
@@ -365,7 +347,7 @@ void failed_save_body(const std::filesystem::path& dir, int fd, FaultStep inject
   report_line(fd, "reload_id", std::to_string(CalibrationStore(dir.string()).load().cal_id));
   if (!clear(dir, fd)) return;
   error.clear();
-  report_line(fd, "recovered", s.save(fault_status(2), 0, "fault gone", &error) ? "1" : error);
+  report_line(fd, "recovered", s.save(status(2), 0, "fault gone", &error) ? "1" : error);
   report_line(fd, "recovered_id", std::to_string(CalibrationStore(dir.string()).load().cal_id));
 }
 

@@ -167,6 +167,9 @@ class AtomicFile {
   void write(std::string_view data);
   void commit();
   const std::string& path() const noexcept { return path_; }
+  // The temporary files of `path` start with this (in the same directory; a pid and a counter
+  // follow): a write killed before commit() leaves one, which is never the file at `path`.
+  static std::string temporary_prefix(const std::string& path) { return path + ".tmp."; }
 
  private:
   void flush_buffer();

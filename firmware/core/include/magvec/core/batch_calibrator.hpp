@@ -609,7 +609,8 @@ OneStepSolution<Scalar> BatchCalibrator<Scalar, Capacity>::refit_one_step(
 }
 
 // Compiled once for the host's capacities (firmware/core/src/inst_batch_calibrator_double.cpp,
-// the magvec::core_batch_double library): a unit that instantiates the batch solve costs about
+// the magvec::core_batch_double library; float at the vector filter's capacity in
+// magvec::core_batch_float): a unit that instantiates the batch solve costs about
 // two minutes of compile time, so the units that use these only call it. solve() and
 // refit_one_step() are defined outside the class because GCC instantiates in-class (implicitly
 // inline) members for inlining even under `extern template`. A unit sees these declarations when
@@ -619,6 +620,9 @@ extern template class BatchCalibrator<double, 64>;    // the vector filter's sta
 extern template class BatchCalibrator<double, 512>;   // the host's li calibrator
 extern template class BatchCalibrator<double, 1024>;  // core tests
 extern template class BatchCalibrator<double, kDynamicCapacity>;  // batch over recordings
+#endif
+#ifdef MAGVEC_CORE_BATCH_FLOAT_COMPILED
+extern template class BatchCalibrator<float, 64>;  // the float vector filter's start from data
 #endif
 
 }  // namespace magvec::core

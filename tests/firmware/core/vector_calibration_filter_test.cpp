@@ -427,7 +427,7 @@ TEST(VectorCalibrationFilter, ManoeuvreMatchesTheBatchOneStepFit) {
   for (int run_i = 0; run_i < kRuns; ++run_i) {
     std::mt19937_64 rng(7000 + static_cast<unsigned>(run_i));
     const auto data = simulate_manoeuvre(tr, o, rng);
-    const BatchResult<double> b = batch_fit<4096>(data);
+    const BatchResult<double> b = batch_fit<kDynamicCapacity>(data);
     ASSERT_EQ(b.verdict, Verdict::kOk) << verdict_name(b.verdict);
     auto f = run<double>(data, VfConfig<double>{});
     if (run_i == 0) print_counters(*f);

@@ -237,11 +237,14 @@ class BatchCalibrator {
 
   // Direction of the mean of R^T Rm^T h_s under a model (start of h_n from a prior).
   Vec3<Scalar> mean_direction(const SensorModel<Scalar>& model) const noexcept {
-    const Mat3<Scalar> rmt = model.rm_matrix().transpose();
+    // Rm kept, its transpose taken in the product: constructing a matrix from a transpose makes
+    // GCC 12 warn -Wmaybe-uninitialized inside Eigen's aliasing check at -O1 (the sanitizer build).
+    const Mat3<Scalar> rm = model.rm_matrix();
     Vec3<Scalar> sum = Vec3<Scalar>::Zero();
     for (std::size_t i = 0; i < store_.size(); ++i) {
       if (!detail::usable(store_[i])) continue;
-      sum += store_[i].r_bn().transpose() * (rmt * (model.w * (store_[i].raw() - model.o)));
+      sum +=
+          store_[i].r_bn().transpose() * (rm.transpose() * (model.w * (store_[i].raw() - model.o)));
     }
     return sum.squaredNorm() > Scalar(0) ? Vec3<Scalar>(sum.normalized()) : Vec3<Scalar>::UnitY();
   }
@@ -295,12 +298,13 @@ class BatchCalibrator {
   // sample with attitude in use, under a result's model and h_n direction d.
   template <typename F>
   void for_geographic_residuals(const BatchResult<Scalar>& res, F&& f) const noexcept {
-    const Mat3<Scalar> rmt = res.model.rm_matrix().transpose();
+    const Mat3<Scalar> rm = res.model.rm_matrix();  // (see mean_direction)
     const Vec3<Scalar> dir = res.h_n_nT.normalized();
     for (std::size_t i = 0; i < store_.size(); ++i) {
       const StoredSample<Scalar>& s = store_[i];
       if (!detail::usable(s)) continue;
-      f(s, Vec3<Scalar>(s.r_bn().transpose() * (rmt * (res.model.w * (s.raw() - res.model.o))) -
+      f(s, Vec3<Scalar>(s.r_bn().transpose() *
+                            (rm.transpose() * (res.model.w * (s.raw() - res.model.o))) -
                         s.f * dir));
     }
   }

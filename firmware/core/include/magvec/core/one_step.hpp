@@ -113,6 +113,28 @@ struct OneStepSolution {
   std::uint32_t moved{0};
 };
 
+// L^-1 B and L^-T b for the 3x3 Cholesky factor L of a sample's residual covariance, by
+// substitution (the one-step pass here and the vector filter's update whiten with these). Eigen's
+// triangular solve with a matrix right-hand side takes its blocked general path (packing, run-time
+// sizes) even for a fixed 3-row block: with the rank-k update that was about 55 % of a one-step
+// pass (perf, 17 000 samples).
+template <typename Scalar, int N>
+Mat<Scalar, 3, N> lower_solve(const Mat3<Scalar>& l, const Mat<Scalar, 3, N>& b) noexcept {
+  Mat<Scalar, 3, N> x;
+  x.row(0) = b.row(0) / l(0, 0);
+  x.row(1) = (b.row(1) - l(1, 0) * x.row(0)) / l(1, 1);
+  x.row(2) = (b.row(2) - l(2, 0) * x.row(0) - l(2, 1) * x.row(1)) / l(2, 2);
+  return x;
+}
+template <typename Scalar>
+Vec3<Scalar> upper_solve(const Mat3<Scalar>& l, const Vec3<Scalar>& b) noexcept {
+  Vec3<Scalar> x;
+  x(2) = b(2) / l(2, 2);
+  x(1) = (b(1) - l(2, 1) * x(2)) / l(1, 1);
+  x(0) = (b(0) - l(1, 0) * x(1) - l(2, 0) * x(2)) / l(0, 0);
+  return x;
+}
+
 template <typename Scalar>
 class OneStepFit {
  public:
@@ -514,25 +536,6 @@ class OneStepFit {
       }
       out->g(c) += jc[0] * rw(0) + jc[1] * rw(1) + jc[2] * rw(2);
     }
-  }
-
-  // L^-1 B and L^-T b for the 3x3 Cholesky factor L of a sample's residual covariance, by
-  // substitution: Eigen's triangular solve with a matrix right-hand side also takes its blocked
-  // general path. With the rank-k update that was about 55 % of a pass (perf, 17 000 samples).
-  template <int N>
-  static Mat<Scalar, 3, N> lower_solve(const Mat3<Scalar>& l, const Mat<Scalar, 3, N>& b) noexcept {
-    Mat<Scalar, 3, N> x;
-    x.row(0) = b.row(0) / l(0, 0);
-    x.row(1) = (b.row(1) - l(1, 0) * x.row(0)) / l(1, 1);
-    x.row(2) = (b.row(2) - l(2, 0) * x.row(0) - l(2, 1) * x.row(1)) / l(2, 2);
-    return x;
-  }
-  static Vec3<Scalar> upper_solve(const Mat3<Scalar>& l, const Vec3<Scalar>& b) noexcept {
-    Vec3<Scalar> x;
-    x(2) = b(2) / l(2, 2);
-    x(1) = (b(1) - l(2, 1) * x(2)) / l(1, 1);
-    x(0) = (b(0) - l(1, 0) * x(1) - l(2, 0) * x(2)) / l(0, 0);
-    return x;
   }
 
   // RMS of the normalised residual vectors over the scale their median implies (chi^2 with 3

@@ -870,16 +870,8 @@ class VectorCalibrationFilter {
         l(i, j) = a / l(j, j);
       }
     }
-    for (int i = 0; i < 3; ++i) {
-      Scalar ri = r(i);
-      Vec<Scalar, kStates> hi = h.row(i).transpose();
-      for (int k = 0; k < i; ++k) {
-        ri -= l(i, k) * (*rw)(k);
-        hi -= l(i, k) * hw->row(k).transpose();
-      }
-      (*rw)(i) = ri / l(i, i);
-      hw->row(i) = (hi / l(i, i)).transpose();
-    }
+    *rw = lower_solve(l, r);
+    *hw = lower_solve(l, h);
     return rw->allFinite() && hw->allFinite();
   }
 

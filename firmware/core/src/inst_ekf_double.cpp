@@ -4,6 +4,7 @@
 #include "magvec/core/scalar_ekf.hpp"
 
 namespace magvec::core {
+template class ScalarEkfBase<double>;
 template class ScalarEkf<double>;
 template class EkfCalibrator<double>;
 }  // namespace magvec::core

@@ -22,7 +22,9 @@
 // the set's information most). The fit is tried when the set is full, then again whenever its
 // information has grown by init_retry_gain per dimension; a failed try keeps the set and records
 // why (init_report(): which parameters the set does not determine, or not an ellipsoid). After an
-// undetermined try the set may grow, doubling up to kInitCapacity (noisy data need more samples).
+// undetermined try the set may grow, doubling up to its capacity (noisy data need more samples).
+// The filter is ScalarEkfBase<Scalar>; ScalarEkf<Scalar, kInitCapacity> only adds the start-up
+// set's storage, so every capacity shares one compiled filter per scalar type.
 // Noise from the data: the magnetometer noise is estimated from the start-up fit's residuals
 // (robust scale) and then from the innovations (winsorised, with the parameter part of the
 // innovation variance removed), per window of nis_window samples, discarding windows that ended in
@@ -36,7 +38,9 @@
 #include <Eigen/Cholesky>
 #include <Eigen/LU>
 #include <algorithm>
+#include <array>
 #include <cmath>
+#include <cstddef>
 #include <cstdint>
 #include <limits>
 
@@ -214,10 +218,9 @@ struct EkfInitReport {
   Scalar limit = std::numeric_limits<Scalar>::quiet_NaN();
 };
 
-template <typename Scalar, int kInitCapacity = 64>
-class ScalarEkf {
+template <typename Scalar>
+class ScalarEkfBase {
   static_assert(CoreScalar<Scalar>);
-  static_assert(kInitCapacity >= 16, "the initial fit needs well over 10 samples");
 
  public:
   static constexpr int kN = kEkfStateDim;
@@ -225,8 +228,6 @@ class ScalarEkf {
   using StateMat = Mat<Scalar, kN, kN>;
   using Config = EkfConfig<Scalar>;
   using InitReport = EkfInitReport<Scalar>;
-
-  explicit ScalarEkf(const Config& config = Config{}) noexcept { configure(config); }
 
   // Replaces the configuration and restarts the filter; counters and the noise estimate are
   // cleared.
@@ -314,6 +315,24 @@ class ScalarEkf {
     const StateVec grad = jacobian(y, v, Scalar(0)) / (Scalar(2) * ny);  // d|y|/dx
     const StateVec f = ut_times(grad);
     return std::sqrt(f.dot(d_.cwiseProduct(f))) * s;
+  }
+
+ protected:
+  // A start-up set of at most `capacity` samples, stored in the derived class's arrays (given by
+  // bind_storage before configure()).
+  explicit ScalarEkfBase(int capacity) noexcept : capacity_(capacity) {}
+  // Copies state and storage pointers: the derived class copies its arrays and binds them again.
+  ScalarEkfBase(const ScalarEkfBase&) noexcept = default;
+  ScalarEkfBase& operator=(const ScalarEkfBase&) noexcept = default;
+  ~ScalarEkfBase() = default;
+  // buf_m: 3 x capacity (column-major, one column per sample); the others capacity entries each.
+  void bind_storage(Scalar* buf_m, Scalar* buf_f, Scalar* used, Scalar* lev,
+                    Scalar* scratch) noexcept {
+    buf_m_ = buf_m;
+    buf_f_ = buf_f;
+    used_ = used;
+    lev_ = lev;
+    scratch_ = scratch;
   }
 
  private:
@@ -568,14 +587,19 @@ class ScalarEkf {
     return EkfStatus::kReinitialised;
   }
 
+  Eigen::Map<Vec3<Scalar>> buf_m(int j) noexcept {
+    return Eigen::Map<Vec3<Scalar>>(buf_m_ + 3 * j);
+  }
+  Eigen::Map<const Vec3<Scalar>> buf_m(int j) const noexcept {
+    return Eigen::Map<const Vec3<Scalar>>(buf_m_ + 3 * j);
+  }
+
   // ---- start-up set: D-optimal exchange on direction features --------------------------------
   // Quadric features of the unit direction u of a reading: the parameters of the exact model at a
   // sphere (W ~ I) see a sample through u u^T and u, so these 9 carry its information about the
   // shape and centre; a radial outlier adds nothing (directions only).
   static Features features(const Vec3<Scalar>& u) noexcept;
-  Features buffered_features(int j) const noexcept {
-    return features(buf_m_.col(j) / buf_m_.col(j).norm());
-  }
+  Features buffered_features(int j) const noexcept { return features(buf_m(j) / buf_m(j).norm()); }
   // Factorises the set's information (ridge for sets of fewer than 9 directions) and updates the
   // log-determinant.
   void refactor_features() noexcept {
@@ -608,13 +632,13 @@ class ScalarEkf {
     for (int j = 0; j < n_buf_; ++j) {
       const Features f = buffered_features(j);
       const Features g = feat_inv_ * f;
-      lev_(j) = f.dot(g);
+      lev_[j] = f.dot(g);
     }
     lev_dirty_ = false;
   }
   void store(int j, const Vec3<Scalar>& m, Scalar fn) noexcept {
-    buf_m_.col(j) = m;
-    buf_f_(j) = fn;
+    buf_m(j) = m;
+    buf_f_[j] = fn;
   }
 
   EkfStatus collect(const Vec3<Scalar>& m, Scalar fn) noexcept {
@@ -642,7 +666,7 @@ class ScalarEkf {
       for (int j = 0; j < n_buf_; ++j) {
         const Features fj = buffered_features(j);
         const Scalar dxj = g.dot(fj);
-        const Scalar gain = (Scalar(1) + dx) * (Scalar(1) - lev_(j)) + dxj * dxj - Scalar(1);
+        const Scalar gain = (Scalar(1) + dx) * (Scalar(1) - lev_[j]) + dxj * dxj - Scalar(1);
         if (gain > best_gain) {
           best_gain = gain;
           best = j;
@@ -678,8 +702,8 @@ class ScalarEkf {
     }
     ++counters_.init_failures;
     // Undetermined: more samples (up to the capacity) may determine it; noise shrinks as 1/sqrt(n).
-    if (report_.failure == EkfInitFailure::kUndetermined && target_ < kInitCapacity)
-      target_ = std::min(2 * target_, kInitCapacity);
+    if (report_.failure == EkfInitFailure::kUndetermined && target_ < capacity_)
+      target_ = std::min(2 * target_, capacity_);
     return false;
   }
 
@@ -690,15 +714,15 @@ class ScalarEkf {
     Scalar f_mean{0};
     int n = 0;
     for (int i = 0; i < n_buf_; ++i) {
-      if (!(used_(i) > 0)) continue;
-      f_mean += buf_f_(i);
+      if (!(used_[i] > 0)) continue;
+      f_mean += buf_f_[i];
       ++n;
     }
     if (n == 0) return false;
     EllipsoidFit<Scalar> fit;
     fit.set_normalization(Normalization<Scalar>{center, f_mean / static_cast<Scalar>(n)});
     for (int i = 0; i < n_buf_; ++i) {
-      if (used_(i) > 0) fit.add(buf_m_.col(i), buf_f_(i));
+      if (used_[i] > 0) fit.add(buf_m(i), buf_f_[i]);
     }
     // Its algebraic start only: the exact-model Gauss-Newton follows. G = W^T W is scale-free, so
     // the normalised fit's G is the one in nT.
@@ -721,9 +745,9 @@ class ScalarEkf {
     grad->setZero();
     int n = 0;
     for (int i = 0; i < n_buf_; ++i) {
-      if (!(used_(i) > 0)) continue;
-      const Linearisation l = linearise(buf_m_.col(i), buf_f_(i));
-      const Scalar res = buf_f_(i) * buf_f_(i) - l.h;
+      if (!(used_[i] > 0)) continue;
+      const Linearisation l = linearise(buf_m(i), buf_f_[i]);
+      const Scalar res = buf_f_[i] * buf_f_[i] - l.h;
       info->template selfadjointView<Eigen::Lower>().rankUpdate(l.h_row, Scalar(1) / l.r);
       *grad += l.h_row * (res / l.r);
       ++n;
@@ -743,11 +767,11 @@ class ScalarEkf {
   int screen(Scalar threshold) noexcept {
     int dropped = 0;
     for (int i = 0; i < n_buf_; ++i) {
-      if (!(used_(i) > 0)) continue;
-      const Linearisation l = linearise(buf_m_.col(i), buf_f_(i));
-      const Scalar res = buf_f_(i) * buf_f_(i) - l.h;
+      if (!(used_[i] > 0)) continue;
+      const Linearisation l = linearise(buf_m(i), buf_f_[i]);
+      const Scalar res = buf_f_[i] * buf_f_[i] - l.h;
       if (!(res * res <= threshold * l.r)) {
-        used_(i) = 0;
+        used_[i] = 0;
         ++dropped;
       }
     }
@@ -757,19 +781,18 @@ class ScalarEkf {
   // Median over the used samples of |residual| / sqrt(R) (normalised = true) or of the residual in
   // per-axis reading units, |residual| / (2 |C^-T y|), whose scale is the noise (false).
   Scalar median_abs_residual(bool normalised, int* count = nullptr) const noexcept {
-    Vec<Scalar, kInitCapacity> e;
+    Scalar* e = scratch_;  // working space of the storage, not state
     int n = 0;
     for (int i = 0; i < n_buf_; ++i) {
-      if (!(used_(i) > 0)) continue;
-      const Linearisation l = linearise(buf_m_.col(i), buf_f_(i));
-      const Scalar res = std::abs(buf_f_(i) * buf_f_(i) - l.h);
-      e(n++) = normalised ? res / std::sqrt(l.r) : res / (Scalar(2) * std::sqrt(l.a));
+      if (!(used_[i] > 0)) continue;
+      const Linearisation l = linearise(buf_m(i), buf_f_[i]);
+      const Scalar res = std::abs(buf_f_[i] * buf_f_[i] - l.h);
+      e[n++] = normalised ? res / std::sqrt(l.r) : res / (Scalar(2) * std::sqrt(l.a));
     }
     if (count != nullptr) *count = n;
     if (n == 0) return Scalar(0);
-    Scalar* first = e.data();
-    std::nth_element(first, first + n / 2, first + n);
-    return e(n / 2);
+    std::nth_element(e, e + n / 2, e + n);
+    return e[n / 2];
   }
 
   // Robust noise variance from the fit's residuals (1.4826 MAD, corrected for the 9 fitted
@@ -832,7 +855,7 @@ class ScalarEkf {
   void judge_sigmas(const StateMat& p0) noexcept {
     Scalar f_mean{0};
     for (int i = 0; i < n_buf_; ++i)
-      f_mean += buf_f_(i);
+      f_mean += buf_f_[i];
     f_mean /= static_cast<Scalar>(n_buf_);
     // The filter linearises about the start: a relative error d leaves a second-order term d^2 F^2
     // in z = F^2, against the noise 2 F sigma of z. A start is good enough when d^2 F^2 <= 2 F
@@ -857,11 +880,11 @@ class ScalarEkf {
   void diagnose_without_fit(const StateVec& x_keep) noexcept {
     Scalar r_mean{0}, f_mean{0};
     for (int i = 0; i < n_buf_; ++i) {
-      r_mean += buf_m_.col(i).norm();
-      f_mean += buf_f_(i);
+      r_mean += buf_m(i).norm();
+      f_mean += buf_f_[i];
     }
     x_ = flatten_state(Mat3<Scalar>::Identity() * (f_mean / r_mean), Vec3<Scalar>::Zero());
-    used_.head(n_buf_).setOnes();
+    std::fill_n(used_, n_buf_, Scalar(1));
     StateMat info;
     StateVec grad;
     normal_equations(&info, &grad);
@@ -883,11 +906,11 @@ class ScalarEkf {
     const Scalar sigma_before = sigma_;
     report_ = InitReport{};
     report_.samples = n_buf_;
-    used_.setZero();
-    used_.head(n_buf_).setOnes();
+    std::fill_n(used_, capacity_, Scalar(0));
+    std::fill_n(used_, n_buf_, Scalar(1));
     Vec3<Scalar> center = Vec3<Scalar>::Zero();
     for (int i = 0; i < n_buf_; ++i)
-      center += buf_m_.col(i);
+      center += buf_m(i);
     center /= static_cast<Scalar>(n_buf_);
     bool ok = algebraic_fit(center);
     const bool ellipsoid = ok;
@@ -969,11 +992,14 @@ class ScalarEkf {
   StateVec x_ = StateVec::Zero();
   StateMat u_ = StateMat::Identity();
   StateVec d_ = StateVec::Ones();
-  // Start-up set (normalised samples and reference field) and its direction information.
-  Mat<Scalar, 3, kInitCapacity> buf_m_ = Mat<Scalar, 3, kInitCapacity>::Zero();
-  Vec<Scalar, kInitCapacity> buf_f_ = Vec<Scalar, kInitCapacity>::Zero();
-  Vec<Scalar, kInitCapacity> used_ = Vec<Scalar, kInitCapacity>::Zero();
-  Vec<Scalar, kInitCapacity> lev_ = Vec<Scalar, kInitCapacity>::Zero();
+  // Start-up set (normalised samples and reference field) and its direction information. The
+  // arrays (capacity_ entries each; buf_m_ 3 per sample) are the derived class's storage.
+  Scalar* buf_m_ = nullptr;
+  Scalar* buf_f_ = nullptr;
+  Scalar* used_ = nullptr;
+  Scalar* lev_ = nullptr;
+  Scalar* scratch_ = nullptr;  // for the median of residuals
+  int capacity_ = 0;
   int n_buf_ = 0;
   int target_ = 0;  // size the set grows to (init_samples, doubled after undetermined tries)
   FeatureMat feat_info_ = FeatureMat::Zero();
@@ -1001,10 +1027,10 @@ class ScalarEkf {
   Scalar last_nis_{0};
 };
 
-template <typename Scalar, int kInitCapacity>
-void ScalarEkf<Scalar, kInitCapacity>::configure(const Config& config) noexcept {
+template <typename Scalar>
+void ScalarEkfBase<Scalar>::configure(const Config& config) noexcept {
   cfg_ = config;
-  cfg_.init_samples = std::clamp(cfg_.init_samples, 16, kInitCapacity);
+  cfg_.init_samples = std::clamp(cfg_.init_samples, 16, capacity_);
   cfg_.init_min_samples = std::clamp(cfg_.init_min_samples, 16, cfg_.init_samples);
   cfg_.iterations = std::max(cfg_.iterations, 1);
   cfg_.nis_window = std::max(cfg_.nis_window, 10);
@@ -1024,8 +1050,8 @@ void ScalarEkf<Scalar, kInitCapacity>::configure(const Config& config) noexcept 
   restart();
 }
 
-template <typename Scalar, int kInitCapacity>
-void ScalarEkf<Scalar, kInitCapacity>::restart() noexcept {
+template <typename Scalar>
+void ScalarEkfBase<Scalar>::restart() noexcept {
   initialised_ = false;
   n_buf_ = 0;
   target_ = cfg_.init_samples;
@@ -1049,14 +1075,13 @@ void ScalarEkf<Scalar, kInitCapacity>::restart() noexcept {
   if (!use_fit_ && scale_ > 0) start_given();
 }
 
-template <typename Scalar, int kInitCapacity>
-EkfStatus ScalarEkf<Scalar, kInitCapacity>::update(const Vec3<Scalar>& m_nT) noexcept {
+template <typename Scalar>
+EkfStatus ScalarEkfBase<Scalar>::update(const Vec3<Scalar>& m_nT) noexcept {
   return update(m_nT, cfg_.reference_field_nT);
 }
 
-template <typename Scalar, int kInitCapacity>
-EkfStatus ScalarEkf<Scalar, kInitCapacity>::update(const Vec3<Scalar>& m_nT,
-                                                   Scalar f_ref_nT) noexcept {
+template <typename Scalar>
+EkfStatus ScalarEkfBase<Scalar>::update(const Vec3<Scalar>& m_nT, Scalar f_ref_nT) noexcept {
   using std::isfinite;
   if (!m_nT.allFinite()) {
     ++counters_.rejected_nonfinite;
@@ -1081,8 +1106,8 @@ EkfStatus ScalarEkf<Scalar, kInitCapacity>::update(const Vec3<Scalar>& m_nT,
   return filter_step(m, fn, fn * fn);
 }
 
-template <typename Scalar, int kInitCapacity>
-bool ScalarEkf<Scalar, kInitCapacity>::try_start() noexcept {
+template <typename Scalar>
+bool ScalarEkfBase<Scalar>::try_start() noexcept {
   if (initialised_ || !use_fit_) return initialised_;
   if (n_buf_ < cfg_.init_min_samples) {
     report_ = InitReport{};
@@ -1094,8 +1119,8 @@ bool ScalarEkf<Scalar, kInitCapacity>::try_start() noexcept {
   return attempt_fit();
 }
 
-template <typename Scalar, int kInitCapacity>
-typename ScalarEkf<Scalar, kInitCapacity>::Features ScalarEkf<Scalar, kInitCapacity>::features(
+template <typename Scalar>
+typename ScalarEkfBase<Scalar>::Features ScalarEkfBase<Scalar>::features(
     const Vec3<Scalar>& u) noexcept {
   Features f;
   f << u(0) * u(0), u(1) * u(1), u(2) * u(2), u(0) * u(1), u(0) * u(2), u(1) * u(2), u(0), u(1),
@@ -1103,11 +1128,56 @@ typename ScalarEkf<Scalar, kInitCapacity>::Features ScalarEkf<Scalar, kInitCapac
   return f;
 }
 
-// Compiled once for the host (firmware/core/src/inst_ekf_double.cpp, the magvec::core_ekf_double
-// library), as the batch calibrator is (see the end of batch_calibrator.hpp): the units that use
-// it only call it (when they link it: its compile definition).
+// The filter with the storage of a start-up set of up to kInitCapacity samples (64 on the MCU;
+// the host's recording runner lets noisy sets grow to 512).
+template <typename Scalar, int kInitCapacity = 64>
+class ScalarEkf : public ScalarEkfBase<Scalar> {
+  static_assert(kInitCapacity >= 16, "the initial fit needs well over 10 samples");
+  using Base = ScalarEkfBase<Scalar>;
+
+ public:
+  using typename Base::Config;
+
+  explicit ScalarEkf(const Config& config = Config{}) noexcept : Base(kInitCapacity) {
+    bind();
+    this->configure(config);
+  }
+  ScalarEkf(const ScalarEkf& other) noexcept : Base(other), store_(other.store_) { bind(); }
+  ScalarEkf& operator=(const ScalarEkf& other) noexcept {
+    Base::operator=(other);
+    store_ = other.store_;
+    bind();
+    return *this;
+  }
+  ~ScalarEkf() = default;
+
+ private:
+  void bind() noexcept {
+    this->bind_storage(store_.m.data(), store_.f.data(), store_.used.data(), store_.lev.data(),
+                       store_.scratch.data());
+  }
+  static constexpr auto kCap = static_cast<std::size_t>(kInitCapacity);
+  struct Store {
+    std::array<Scalar, 3 * kCap> m{};
+    std::array<Scalar, kCap> f{};
+    std::array<Scalar, kCap> used{};
+    std::array<Scalar, kCap> lev{};
+    std::array<Scalar, kCap> scratch{};
+  };
+  Store store_{};
+};
+
+// The filter compiled once per scalar for the host (firmware/core/src/inst_ekf_<scalar>.cpp, the
+// magvec::core_ekf_<scalar> libraries), as the batch calibrator is (see the end of
+// batch_calibrator.hpp): the units that use it, at any capacity, only call it (when they link the
+// library: its compile definition).
 #ifdef MAGVEC_CORE_EKF_DOUBLE_COMPILED
+extern template class ScalarEkfBase<double>;
 extern template class ScalarEkf<double>;
+#endif
+#ifdef MAGVEC_CORE_EKF_FLOAT_COMPILED
+extern template class ScalarEkfBase<float>;
+extern template class ScalarEkf<float>;
 #endif
 
 }  // namespace magvec::core

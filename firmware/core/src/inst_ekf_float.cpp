@@ -1,0 +1,8 @@
+// The scalar EKF in float at the host's sizes, compiled once (see the end of scalar_ekf.hpp): the
+// float recording runner and the float tests call it.
+#include "magvec/core/scalar_ekf.hpp"
+
+namespace magvec::core {
+template class ScalarEkfBase<float>;
+template class ScalarEkf<float>;
+}  // namespace magvec::core

@@ -181,6 +181,39 @@ TEST(ScalarEkf, NoiseFreeConvergesToTruth) {
   EXPECT_EQ(ekf.counters().gated, 0u);
 }
 
+// The start-up set lives in the derived class and the filter reaches it by pointer: a copy (or an
+// assignment) taken during start-up must carry its own set. The copy continues exactly as the
+// uncopied filter does, however the original goes on.
+TEST(ScalarEkf, ACopyDuringStartUpOwnsItsStartUpSet) {
+  Scenario s;
+  const Data d = simulate(s, 11);
+  const EkfConfig<double> cfg = default_config<double>(s.sigma);
+  ScalarEkf<double> reference(cfg);
+  ScalarEkf<double> original(cfg);
+  const std::size_t half = 40;  // fewer than init_samples (64): still collecting
+  for (std::size_t i = 0; i < half; ++i) {
+    reference.update(d.noisy[i], kF);
+    original.update(d.noisy[i], kF);
+  }
+  ASSERT_FALSE(original.initialised());
+  ScalarEkf<double> copy(original);
+  ScalarEkf<double> assigned(cfg);
+  assigned = original;
+  // The original now sees other data (a wrong field): its start-up set changes.
+  for (std::size_t i = half; i < d.noisy.size(); ++i)
+    original.update(d.noisy[i], 2 * kF);
+  for (std::size_t i = half; i < d.noisy.size(); ++i) {
+    const EkfStatus r = reference.update(d.noisy[i], kF);
+    EXPECT_EQ(copy.update(d.noisy[i], kF), r) << i;
+    EXPECT_EQ(assigned.update(d.noisy[i], kF), r) << i;
+  }
+  ASSERT_TRUE(reference.initialised());
+  EXPECT_EQ(copy.state(), reference.state());
+  EXPECT_EQ(assigned.state(), reference.state());
+  EXPECT_EQ(copy.covariance(), reference.covariance());
+  EXPECT_NE(original.state(), reference.state());
+}
+
 TEST(ScalarEkf, NoiseFreeLargeOffsetsConvergeInFloatAndDouble) {
   Scenario s;
   s.sigma = 0;

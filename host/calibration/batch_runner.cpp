@@ -377,24 +377,33 @@ TimeOffsetEstimate estimate_time_offset(Calibrator* cal, const std::vector<Row>&
         "not estimated: the fit failed at the scan minimum (" + f2(best_tau * 1e3, 1) + " ms)";
     return out;
   }
+  // Profile values at the current noise figures (rb) by tau: a walk revisits two points of the
+  // previous bracket, and each value is a full refit.
+  std::vector<std::pair<double, double>> known;
   auto profile = [&](double tau) {
+    for (const auto& [t, c] : known)
+      if (t == tau) return c;
     fill(cal, rows, &series, tau, &use, true);
     // chi^2 with the interpolated attitudes' noise modelled (att_var): its expectation is flat
     // in the noise part, so its minimum sits at the true offset. (Adding log det Sigma, as in a
     // full likelihood, would reward the smaller noise of mid-record interpolation and pull the
     // estimate off a record's time.)
-    if (one_step) return cal->refit_one_step(rb).cost;
-    return scan_cost(rows, use, series, tau, rb.model, rb.h_n_nT.normalized(), rb.h_n_nT.norm());
+    const double c = one_step ? cal->refit_one_step(rb).cost
+                              : scan_cost(rows, use, series, tau, rb.model, rb.h_n_nT.normalized(),
+                                          rb.h_n_nT.norm());
+    known.emplace_back(tau, c);
+    return c;
   };
   // Parabolic steps on the profile: move to the vertex when it lies within the bracket (and
   // narrow it), else walk one bracket width downhill; stop when the vertex moves < 10 us.
   // The noise figures of the profile come from a full fit; a fit at a wrong offset mistakes the
   // lag for attitude noise, so the search repeats with the noise re-estimated at its result
   // until the offset settles.
-  double tau_hat = best_tau, curv = 0;
+  constexpr double kMinBracket = 2.5e-4;
+  double tau_hat = best_tau, curv = 0, h_start = step;
   for (int outer = 0; outer < 4; ++outer) {
     const double tau_start = tau_hat;
-    double h = step;
+    double h = h_start;
     for (int round = 0; round < 12; ++round) {
       const double a = profile(tau_hat - h), b = profile(tau_hat), c = profile(tau_hat + h);
       const double v = parabola_vertex(tau_hat, h, a, b, c, &curv);
@@ -406,7 +415,7 @@ TimeOffsetEstimate estimate_time_offset(Calibrator* cal, const std::vector<Row>&
       if (std::abs(moved) <= h) {
         tau_hat = v;
         if (std::abs(moved) < 1e-5) break;
-        h = std::max(0.5 * h, 2.5e-4);
+        h = std::max(0.5 * h, kMinBracket);
       } else {
         tau_hat += moved > 0 ? h : -h;
       }
@@ -416,6 +425,10 @@ TimeOffsetEstimate estimate_time_offset(Calibrator* cal, const std::vector<Row>&
     const core::BatchResult<double> again = cal->solve(opt.method);
     if (!again.has_model || !again.has_h_n) break;
     rb = again;
+    known.clear();
+    // The noise re-estimated at a better offset moves the minimum less than this search moved
+    // it: the next search starts from a bracket of that size instead of the scan's step.
+    h_start = std::min(step, std::max(std::abs(tau_hat - tau_start), kMinBracket));
   }
   if (!(curv > 0)) {
     out.note = "not estimated: the profile cost has no curvature at the minimum";

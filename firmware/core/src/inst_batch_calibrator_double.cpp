@@ -8,4 +8,9 @@ template class BatchCalibrator<double, 64>;
 template class BatchCalibrator<double, 512>;
 template class BatchCalibrator<double, 1024>;
 template class BatchCalibrator<double, kDynamicCapacity>;
+// What the units linking this library also only call (the end of ellipsoid_fit.hpp).
+template class EllipsoidFit<double>;
+template EllipsoidSolution<double> refine_ellipsoid_geometric<double>(
+    SampleView<double>, const Normalization<double>&, const EllipsoidSolution<double>&,
+    int) noexcept;
 }  // namespace magvec::core

@@ -163,105 +163,9 @@ class EllipsoidFit {
   // Stage (1) alone (docs/equations.md E-Ell-2): the quadric of least algebraic distance under
   // tr G = 1, centre and scale, in the normalised coordinates: (x - u)^T G (x - u) = mean(f^2).
   // kOk, kTooFewSamples, kIllConditioned (data on a plane, a ring, ...) or kNotAnEllipsoid.
-  EllipsoidStatus algebraic_start(Mat3<Scalar>* g, Vec3<Scalar>* u) const noexcept {
-    if (n_ < kMinSamples) return EllipsoidStatus::kTooFewSamples;
-    const Accumulator s = s_.template selfadjointView<Eigen::Upper>();
-    const Mat<Scalar, kCoeffs, kCoeffs> m = s.template topLeftCorner<kCoeffs, kCoeffs>();
-    // q = e_2 + T^T q': G22 = 1 - G00 - G11, the other nine coefficients free. A linear
-    // least-squares problem (no eigen-solver), well posed for any ellipsoid (tr G > 0).
-    Mat<Scalar, kCoeffs - 1, kCoeffs> t = Mat<Scalar, kCoeffs - 1, kCoeffs>::Zero();
-    t(0, 0) = 1;
-    t(0, 2) = -1;
-    t(1, 1) = 1;
-    t(1, 2) = -1;
-    for (int i = 2; i < kCoeffs - 1; ++i)
-      t(i, i + 1) = 1;
-    const Mat<Scalar, kCoeffs - 1, kCoeffs - 1> a = t * m * t.transpose();
-    const Vec<Scalar, kCoeffs - 1> rhs = -(t * m.col(2));
-    const Eigen::LDLT<Mat<Scalar, kCoeffs - 1, kCoeffs - 1>> ldlt(a);
-    if (ldlt.info() != Eigen::Success) return EllipsoidStatus::kIllConditioned;
-    const Vec<Scalar, kCoeffs - 1> qp = ldlt.solve(rhs);
-    if (!qp.allFinite()) return EllipsoidStatus::kIllConditioned;
-    Vec<Scalar, kCoeffs> q = t.transpose() * qp;
-    q(2) += 1;
-    Mat3<Scalar> g0 = detail::sym_from6<Scalar>(q.template head<6>());
-    const Eigen::LLT<Mat3<Scalar>> llt(g0);
-    if (llt.info() != Eigen::Success) return EllipsoidStatus::kNotAnEllipsoid;
-    *u = Scalar(-0.5) * llt.solve(Vec3<Scalar>(q.template segment<3>(6)));
-    const Scalar r2 = u->dot(g0 * *u) - q(9);
-    const Scalar mean_f2 = s(9, 10) / s(9, 9);
-    if (!(r2 > Scalar(0)) || !(mean_f2 > Scalar(0))) return EllipsoidStatus::kNotAnEllipsoid;
-    *g = g0 * (mean_f2 / r2);
-    return g->allFinite() && u->allFinite() ? EllipsoidStatus::kOk
-                                            : EllipsoidStatus::kNotAnEllipsoid;
-  }
+  EllipsoidStatus algebraic_start(Mat3<Scalar>* g, Vec3<Scalar>* u) const noexcept;
 
-  EllipsoidSolution<Scalar> solve(int max_iterations = 50) const noexcept {
-    EllipsoidSolution<Scalar> out;
-    if (n_ < kMinSamples) return out;
-    const Accumulator s = s_.template selfadjointView<Eigen::Upper>();
-    // (1) Algebraic start.
-    Mat3<Scalar> g;
-    Vec3<Scalar> u;
-    out.status = algebraic_start(&g, &u);
-    if (out.status != EllipsoidStatus::kOk) return out;
-
-    // (2) Gauss-Newton on (G, u) with the exact algebraic residual.
-    Vec<Scalar, kParams> p;
-    p << g(0, 0), g(1, 1), g(2, 2), g(0, 1), g(0, 2), g(1, 2), u;
-    Scalar cost = algebraic_cost(s, p);
-    Mat<Scalar, kParams, kParams> h = Mat<Scalar, kParams, kParams>::Identity();
-    bool converged = false;
-    const Scalar tol = detail::default_tolerance<Scalar>();
-    int it = 0;
-    for (; it < max_iterations; ++it) {
-      Mat<Scalar, kAug, kParams> d;
-      const Vec<Scalar, kAug> th = theta(p, &d);
-      h = d.transpose() * s * d;
-      const Vec<Scalar, kParams> grad = d.transpose() * (s * th);
-      const Eigen::LDLT<Mat<Scalar, kParams, kParams>> ldlt(h);
-      if (ldlt.info() != Eigen::Success) break;
-      Vec<Scalar, kParams> step = -ldlt.solve(grad);
-      if (!step.allFinite()) break;
-      // Backtracking keeps the cost monotone when the start is far off.
-      Scalar new_cost = algebraic_cost(s, p + step);
-      int halvings = 0;
-      while (!(new_cost <= cost) && halvings < 20) {
-        step *= Scalar(0.5);
-        new_cost = algebraic_cost(s, p + step);
-        ++halvings;
-      }
-      if (!(new_cost <= cost)) {
-        converged = true;  // no descent left at working precision
-        break;
-      }
-      p += step;
-      const bool small = step.template lpNorm<Eigen::Infinity>() < tol;
-      const bool flat = cost - new_cost <= std::numeric_limits<Scalar>::epsilon() * cost;
-      cost = new_cost;
-      if (small || flat) {
-        converged = true;
-        ++it;
-        break;
-      }
-    }
-    out.iterations = it;
-    out.rcond = detail::scaled_rcond<Scalar, kParams>(h);
-    out.rms = std::sqrt(std::max(cost, Scalar(0)) / static_cast<Scalar>(n_)) / Scalar(2);
-    g = detail::sym_from6<Scalar>(p.template head<6>());
-    u = p.template segment<3>(kIdxCentre);
-    if (Eigen::LLT<Mat3<Scalar>>(g).info() != Eigen::Success ||
-        !detail::decompose_g<Scalar>(g, norm_.to_nt(u), &out)) {
-      out.status = EllipsoidStatus::kNotAnEllipsoid;
-      return out;
-    }
-    if (!(out.rcond > std::numeric_limits<Scalar>::epsilon() * Scalar(100))) {
-      out.status = EllipsoidStatus::kIllConditioned;
-    } else {
-      out.status = converged ? EllipsoidStatus::kOk : EllipsoidStatus::kNotConverged;
-    }
-    return out;
-  }
+  EllipsoidSolution<Scalar> solve(int max_iterations = 50) const noexcept;
 
   // theta~(p) = [G entries (6), b = -2 G u (3), d = u^T G u, -1] and its Jacobian (11 x 9).
   static Vec<Scalar, kAug> theta(const Vec<Scalar, kParams>& p,
@@ -306,6 +210,110 @@ class EllipsoidFit {
   std::size_t n_{0};
   bool has_norm_{false};
 };
+
+// Out of the class: a unit that links the library compiling EllipsoidFit (see the end of this
+// file) calls these instead of instantiating them.
+template <typename Scalar>
+EllipsoidStatus EllipsoidFit<Scalar>::algebraic_start(Mat3<Scalar>* g,
+                                                      Vec3<Scalar>* u) const noexcept {
+  if (n_ < kMinSamples) return EllipsoidStatus::kTooFewSamples;
+  const Accumulator s = s_.template selfadjointView<Eigen::Upper>();
+  const Mat<Scalar, kCoeffs, kCoeffs> m = s.template topLeftCorner<kCoeffs, kCoeffs>();
+  // q = e_2 + T^T q': G22 = 1 - G00 - G11, the other nine coefficients free. A linear
+  // least-squares problem (no eigen-solver), well posed for any ellipsoid (tr G > 0).
+  Mat<Scalar, kCoeffs - 1, kCoeffs> t = Mat<Scalar, kCoeffs - 1, kCoeffs>::Zero();
+  t(0, 0) = 1;
+  t(0, 2) = -1;
+  t(1, 1) = 1;
+  t(1, 2) = -1;
+  for (int i = 2; i < kCoeffs - 1; ++i)
+    t(i, i + 1) = 1;
+  const Mat<Scalar, kCoeffs - 1, kCoeffs - 1> a = t * m * t.transpose();
+  const Vec<Scalar, kCoeffs - 1> rhs = -(t * m.col(2));
+  const Eigen::LDLT<Mat<Scalar, kCoeffs - 1, kCoeffs - 1>> ldlt(a);
+  if (ldlt.info() != Eigen::Success) return EllipsoidStatus::kIllConditioned;
+  const Vec<Scalar, kCoeffs - 1> qp = ldlt.solve(rhs);
+  if (!qp.allFinite()) return EllipsoidStatus::kIllConditioned;
+  Vec<Scalar, kCoeffs> q = t.transpose() * qp;
+  q(2) += 1;
+  Mat3<Scalar> g0 = detail::sym_from6<Scalar>(q.template head<6>());
+  const Eigen::LLT<Mat3<Scalar>> llt(g0);
+  if (llt.info() != Eigen::Success) return EllipsoidStatus::kNotAnEllipsoid;
+  *u = Scalar(-0.5) * llt.solve(Vec3<Scalar>(q.template segment<3>(6)));
+  const Scalar r2 = u->dot(g0 * *u) - q(9);
+  const Scalar mean_f2 = s(9, 10) / s(9, 9);
+  if (!(r2 > Scalar(0)) || !(mean_f2 > Scalar(0))) return EllipsoidStatus::kNotAnEllipsoid;
+  *g = g0 * (mean_f2 / r2);
+  return g->allFinite() && u->allFinite() ? EllipsoidStatus::kOk : EllipsoidStatus::kNotAnEllipsoid;
+}
+
+template <typename Scalar>
+EllipsoidSolution<Scalar> EllipsoidFit<Scalar>::solve(int max_iterations) const noexcept {
+  EllipsoidSolution<Scalar> out;
+  if (n_ < kMinSamples) return out;
+  const Accumulator s = s_.template selfadjointView<Eigen::Upper>();
+  // (1) Algebraic start.
+  Mat3<Scalar> g;
+  Vec3<Scalar> u;
+  out.status = algebraic_start(&g, &u);
+  if (out.status != EllipsoidStatus::kOk) return out;
+
+  // (2) Gauss-Newton on (G, u) with the exact algebraic residual.
+  Vec<Scalar, kParams> p;
+  p << g(0, 0), g(1, 1), g(2, 2), g(0, 1), g(0, 2), g(1, 2), u;
+  Scalar cost = algebraic_cost(s, p);
+  Mat<Scalar, kParams, kParams> h = Mat<Scalar, kParams, kParams>::Identity();
+  bool converged = false;
+  const Scalar tol = detail::default_tolerance<Scalar>();
+  int it = 0;
+  for (; it < max_iterations; ++it) {
+    Mat<Scalar, kAug, kParams> d;
+    const Vec<Scalar, kAug> th = theta(p, &d);
+    h = d.transpose() * s * d;
+    const Vec<Scalar, kParams> grad = d.transpose() * (s * th);
+    const Eigen::LDLT<Mat<Scalar, kParams, kParams>> ldlt(h);
+    if (ldlt.info() != Eigen::Success) break;
+    Vec<Scalar, kParams> step = -ldlt.solve(grad);
+    if (!step.allFinite()) break;
+    // Backtracking keeps the cost monotone when the start is far off.
+    Scalar new_cost = algebraic_cost(s, p + step);
+    int halvings = 0;
+    while (!(new_cost <= cost) && halvings < 20) {
+      step *= Scalar(0.5);
+      new_cost = algebraic_cost(s, p + step);
+      ++halvings;
+    }
+    if (!(new_cost <= cost)) {
+      converged = true;  // no descent left at working precision
+      break;
+    }
+    p += step;
+    const bool small = step.template lpNorm<Eigen::Infinity>() < tol;
+    const bool flat = cost - new_cost <= std::numeric_limits<Scalar>::epsilon() * cost;
+    cost = new_cost;
+    if (small || flat) {
+      converged = true;
+      ++it;
+      break;
+    }
+  }
+  out.iterations = it;
+  out.rcond = detail::scaled_rcond<Scalar, kParams>(h);
+  out.rms = std::sqrt(std::max(cost, Scalar(0)) / static_cast<Scalar>(n_)) / Scalar(2);
+  g = detail::sym_from6<Scalar>(p.template head<6>());
+  u = p.template segment<3>(kIdxCentre);
+  if (Eigen::LLT<Mat3<Scalar>>(g).info() != Eigen::Success ||
+      !detail::decompose_g<Scalar>(g, norm_.to_nt(u), &out)) {
+    out.status = EllipsoidStatus::kNotAnEllipsoid;
+    return out;
+  }
+  if (!(out.rcond > std::numeric_limits<Scalar>::epsilon() * Scalar(100))) {
+    out.status = EllipsoidStatus::kIllConditioned;
+  } else {
+    out.status = converged ? EllipsoidStatus::kOk : EllipsoidStatus::kNotConverged;
+  }
+  return out;
+}
 
 // Geometric refinement: Gauss-Newton on r_i = |W (m_i - o)| - F_i over the stored samples that are
 // not flagged as outliers, with A = W^-1 = Ks Ko parameterised by its six structural non-zeros
@@ -383,5 +391,19 @@ EllipsoidSolution<Scalar> refine_ellipsoid_geometric(SampleView<std::type_identi
   }
   return out;
 }
+
+// Compiled once for the host with the batch calibrator (inst_batch_calibrator_<scalar>.cpp, the
+// magvec::core_batch_<scalar> libraries): the units that link one only call these.
+#ifdef MAGVEC_CORE_BATCH_DOUBLE_COMPILED
+extern template class EllipsoidFit<double>;
+extern template EllipsoidSolution<double> refine_ellipsoid_geometric<double>(
+    SampleView<double>, const Normalization<double>&, const EllipsoidSolution<double>&,
+    int) noexcept;
+#endif
+#ifdef MAGVEC_CORE_BATCH_FLOAT_COMPILED
+extern template class EllipsoidFit<float>;
+extern template EllipsoidSolution<float> refine_ellipsoid_geometric<float>(
+    SampleView<float>, const Normalization<float>&, const EllipsoidSolution<float>&, int) noexcept;
+#endif
 
 }  // namespace magvec::core

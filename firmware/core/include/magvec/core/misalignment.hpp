@@ -376,4 +376,23 @@ MisalignmentSolution<Scalar> joint_rm_hn(SampleView<std::type_identity_t<Scalar>
   return out;
 }
 
+// Compiled once for the host with the batch calibrator (inst_batch_calibrator_<scalar>.cpp, the
+// magvec::core_batch_<scalar> libraries): the units that link one only call these.
+#ifdef MAGVEC_CORE_BATCH_DOUBLE_COMPILED
+extern template MisalignmentSolution<double> plane_compression<double>(
+    SampleView<double>, const Mat3<double>&, const Vec3<double>&,
+    const MisalignmentOptions<double>&) noexcept;
+extern template MisalignmentSolution<double> joint_rm_hn<double>(
+    SampleView<double>, const Mat3<double>&, const Vec3<double>&,
+    const MisalignmentOptions<double>&) noexcept;
+#endif
+#ifdef MAGVEC_CORE_BATCH_FLOAT_COMPILED
+extern template MisalignmentSolution<float> plane_compression<float>(
+    SampleView<float>, const Mat3<float>&, const Vec3<float>&,
+    const MisalignmentOptions<float>&) noexcept;
+extern template MisalignmentSolution<float> joint_rm_hn<float>(
+    SampleView<float>, const Mat3<float>&, const Vec3<float>&,
+    const MisalignmentOptions<float>&) noexcept;
+#endif
+
 }  // namespace magvec::core

@@ -1,5 +1,5 @@
-// The scalar EKF and its calibrator in double at the host's sizes, compiled once (see the end of
-// scalar_ekf.hpp).
+// The scalar EKF in double (ScalarEkfBase, which serves every start-up capacity, and the
+// default-capacity ScalarEkf) and its calibrator, compiled once (see the end of scalar_ekf.hpp).
 #include "magvec/core/ekf_calibrator.hpp"
 #include "magvec/core/scalar_ekf.hpp"
 

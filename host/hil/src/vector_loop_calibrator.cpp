@@ -54,7 +54,8 @@ VectorLoopCalibrator::Diagnostics VectorLoopCalibrator::diagnostics() const noex
     d.time_offset_s = f.time_offset_s();
     d.sigmas = f.sigmas();
   }
-  d.worst_sigma_ratio = c.worst_sigma_ratio();
+  d.output = c.output_uncertainty();
+  d.readiness_ratio = c.readiness_ratio();
   return d;
 }
 

@@ -103,10 +103,10 @@ TEST(VectorCalibrator, CalibratesThroughTheLoopWithEstimatedNoise) {
   }
   ASSERT_EQ(loop.state(), CalState::kApplied)
       << cal_state_name(loop.state()) << " " << cal_failure_name(loop.failure()) << " "
-      << vec_cal_code_name(loop.solver_code()) << " worst ratio " << cal->worst_sigma_ratio();
+      << vec_cal_code_name(loop.solver_code()) << " readiness ratio " << cal->readiness_ratio();
   std::printf("applied at %.2f s; noise %.3f nT (+- %.3f), %.4f deg (+- %.4f); ratio %.3f\n",
               applied_at_s, cal->noise().mag_nT, cal->noise().mag_sigma_nT,
-              cal->noise().attitude_deg, cal->noise().attitude_sigma_deg, cal->worst_sigma_ratio());
+              cal->noise().attitude_deg, cal->noise().attitude_sigma_deg, cal->readiness_ratio());
   EXPECT_TRUE(loop.active_aligned());
   // The noise estimate against the simulated figures.
   ASSERT_TRUE(cal->noise_known());

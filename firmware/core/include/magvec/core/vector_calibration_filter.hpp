@@ -36,6 +36,7 @@
 #include "magvec/core/misalignment.hpp"
 #include "magvec/core/one_step.hpp"
 #include "magvec/core/sensor_model.hpp"
+#include "magvec/core/symmetric_eigen.hpp"
 #include "magvec/core/types.hpp"
 #include "magvec/core/ud_factor.hpp"
 
@@ -202,6 +203,32 @@ struct VfSigmas {
   Vec3<Scalar> tc_nT_per_degC = Vec3<Scalar>::Zero();
 };
 
+// What the calibration's remaining uncertainty does to the outputs over the survey envelope
+// (E-VF-10: every heading, at the tilts seen since the start): per-axis RMS of the E/N/U error and
+// RMS of the |h| error it adds, next to the per-sample noise of those outputs at the filter's noise
+// figures. NaN while the filter is not running.
+template <typename Scalar>
+struct VfOutputUncertainty {
+  static constexpr Scalar kNaN = std::numeric_limits<Scalar>::quiet_NaN();
+  std::uint32_t attitudes{0};        // envelope attitudes evaluated (0: not running)
+  Scalar vector_nT = kNaN;           // calibration error, per E/N/U axis (RMS over the samples)
+  Scalar intensity_nT = kNaN;        // calibration error of |h|
+  Scalar vector_noise_nT = kNaN;     // per-sample noise per axis (magnetometer and attitude)
+  Scalar intensity_noise_nT = kNaN;  // per-sample noise of |h| (magnetometer)
+};
+
+// Noise figures from the live innovations (E-VF-10): covariance matching of the whitened
+// innovations against the filter's magnetometer and attitude parts. Valid after enough samples.
+template <typename Scalar>
+struct VfNoiseEstimate {
+  static constexpr Scalar kNaN = std::numeric_limits<Scalar>::quiet_NaN();
+  std::uint32_t samples{0};
+  bool valid{false};
+  Scalar mag_nT = kNaN, mag_sigma_nT = kNaN;
+  bool has_attitude{false};  // the attitude figure is separable (attitude noise configured)
+  Scalar attitude_rad = kNaN, attitude_sigma_rad = kNaN;
+};
+
 template <typename Scalar, int kInitCapacity = 64, int kReplayCapacity = 512>
 class VectorCalibrationFilter {
   static_assert(CoreScalar<Scalar>);
@@ -285,11 +312,46 @@ class VectorCalibrationFilter {
   // Covariance in interface units (W 1, o nT, Rm rad about body axes, h_n nT, dt s, c nT/degC).
   StateMat covariance() const noexcept;
   VfSigmas<Scalar> sigmas(Scalar t_degC = std::numeric_limits<Scalar>::quiet_NaN()) const noexcept;
+  // E-VF-10. output_uncertainty() linearises at 48 attitudes and takes a trace over the U-D
+  // factors (about 60 000 flops): poll it every few dozen samples, not per sample.
+  VfOutputUncertainty<Scalar> output_uncertainty() const noexcept;
+  VfNoiseEstimate<Scalar> innovation_noise() const noexcept;
+  // Live samples before innovation_noise() is valid.
+  static constexpr std::uint32_t kMinNoiseSamples = 100;
+  // Consistency (E-VF-10): the ratios of the variance the recent innovations show (about the last
+  // kRecentWindow live samples) to the variance the filter assumes, magnetometer and attitude
+  // parts. 1 for a consistent filter; NaN before kMinNoiseSamples or when not separable.
+  static constexpr std::uint32_t kRecentWindow = 256;
+  Vec<Scalar, 2> recent_noise_ratios() const noexcept {
+    Vec<Scalar, 2> r = Vec<Scalar, 2>::Constant(kNaN);
+    Scalar lm{0}, la{0};
+    if (nz_n_ >= kMinNoiseSamples && solve_noise_ratios(nz_recent_, &lm, &la)) r << lm, la;
+    return r;
+  }
 
  private:
   static constexpr Scalar kNaN = std::numeric_limits<Scalar>::quiet_NaN();
   // Replay of the kept samples: residuals at this mean chi^2 per observation count as settled.
   static constexpr Scalar kReplaySettled = Scalar(2);
+  // Calibration states (W, o, Rm, c: what a candidate's output depends on), for E-VF-10.
+  static constexpr int kCalStates = 15;
+  static constexpr std::array<int, kCalStates> kCalIndex = {0, 1, 2,  3,  4,  5,  6, 7,
+                                                            8, 9, 10, 11, 16, 17, 18};
+  static_assert(kRm0 + 3 == 12 && kTc0 == 16);
+  using CalMat = Mat<Scalar, kCalStates, kCalStates>;
+  // Headings of the output envelope (E-VF-10).
+  static constexpr int kEnvelopeHeadings = 8;
+  // Running means of E-VF-10 stop growing their count here: past it they are moving averages
+  // (float32 sums of 2^24 terms would stop moving).
+  static constexpr std::uint32_t kStatsCountCap = 1u << 20;
+  // Parts of a linearisation beyond the whitened residual and Jacobian (E-VF-10).
+  struct LinExtras {
+    Mat<Scalar, 3, kStates> h;  // unwhitened Jacobian, holds not applied
+    Mat3<Scalar> cov;           // residual covariance
+    Mat3<Scalar> cov_mag;       // its magnetometer part
+    Mat3<Scalar> l;             // Cholesky factor of cov
+    Vec3<Scalar> g;             // predicted field (n frame, normalised)
+  };
 
   // A sample in the filter's units.
   struct Prepared {
@@ -362,6 +424,9 @@ class VectorCalibrationFilter {
     tilt_m2_.setZero();
     tilt_released_ = false;
     reset_windows();
+    nz_n_ = 0;
+    nz_mean_.setZero();
+    nz_recent_.setZero();
   }
   void reset_windows() noexcept {
     window_n_ = 0;
@@ -808,7 +873,8 @@ class VectorCalibrationFilter {
   }
 
   // Whitened residual and Jacobian of a vector sample at the current estimate (E-VF-2, E-VF-3).
-  bool linearise(const Prepared& p, Vec3<Scalar>* rw, Mat<Scalar, 3, kStates>* hw) const noexcept {
+  bool linearise(const Prepared& p, Vec3<Scalar>* rw, Mat<Scalar, 3, kStates>* hw,
+                 LinExtras* ex = nullptr) const noexcept {
     const StateVec xf = lin_at_nominal_ ? nom_ : full();
     Mat3<Scalar> wm = Mat3<Scalar>::Zero();
     for (int k = 0; k < kWEntries; ++k)
@@ -836,6 +902,10 @@ class VectorCalibrationFilter {
     h.template block<3, 3>(0, kHn0) = -Mat3<Scalar>::Identity();
     h.col(kDt) = -p.omega.cross(g);
     h.template block<3, 3>(0, kTc0) = -pm * p.dtemp;
+    if (ex != nullptr) {
+      ex->h = h;
+      ex->g = g;
+    }
     for (int k = 0; k < kStates; ++k)
       if (held_[static_cast<std::size_t>(k)]) h.col(k).setZero();
     // Residual covariance (E-OS-3): magnetometer noise through P, attitude noise across h_n.
@@ -854,7 +924,8 @@ class VectorCalibrationFilter {
     } else {
       c = skew(hn).transpose();
     }
-    const Mat3<Scalar> cov = sm * sm * (pm * pm.transpose()) + sa * sa * (c * c.transpose());
+    const Mat3<Scalar> cov_mag = sm * sm * (pm * pm.transpose());
+    const Mat3<Scalar> cov = cov_mag + sa * sa * (c * c.transpose());
     // Cholesky L L^T of the 3x3 covariance and forward substitution (no level-3 solver).
     Mat3<Scalar> l = Mat3<Scalar>::Zero();
     for (int j = 0; j < 3; ++j) {
@@ -872,6 +943,11 @@ class VectorCalibrationFilter {
     }
     *rw = lower_solve(l, r);
     *hw = lower_solve(l, h);
+    if (ex != nullptr) {
+      ex->cov = cov;
+      ex->cov_mag = cov_mag;
+      ex->l = l;
+    }
     return rw->allFinite() && hw->allFinite();
   }
 
@@ -912,11 +988,14 @@ class VectorCalibrationFilter {
   // Three whitened scalar updates of a vector sample (E-VF-2). With `gate`, the sample is rejected
   // as a whole when any component's NIS (at the prior covariance) exceeds the gate.
   enum class VecResult : std::uint8_t { kApplied, kGated, kFailed };
-  VecResult vector_update(const Prepared& p, bool gate) noexcept {
+  // `live`: a live sample (not a replay), whose prior innovation and Jacobian feed E-VF-10.
+  VecResult vector_update(const Prepared& p, bool gate, bool live = false) noexcept {
     Vec3<Scalar> rw;
     Mat<Scalar, 3, kStates> hw;
-    if (!linearise(p, &rw, &hw)) return VecResult::kFailed;
+    LinExtras ex;
+    if (!linearise(p, &rw, &hw, live ? &ex : nullptr)) return VecResult::kFailed;
     std::array<StateVec, 3> f;
+    Vec3<Scalar> nu_prior;
     Scalar nis_max{0};
     const StateVec x_lin = lin_at_nominal_ ? StateVec::Zero() : x_;
     for (int j = 0; j < 3; ++j) {
@@ -924,10 +1003,12 @@ class VectorCalibrationFilter {
       const StateVec& fj = f[static_cast<std::size_t>(j)];
       const Scalar sj = fj.dot(d_.cwiseProduct(fj)) + Scalar(1);
       const Scalar nuj = rw(j) + hw.row(j).dot(x_ - x_lin);
+      nu_prior(j) = nuj;
       nis_max = std::max(nis_max, nuj * nuj / sj);
     }
     last_nis_ = nis_max;
     if (gate && cfg_.gate_nis > Scalar(0) && !(nis_max <= cfg_.gate_nis)) return VecResult::kGated;
+    if (live) note_innovation(ex, f, nu_prior);
     for (int j = 0; j < 3; ++j) {
       const StateVec hj = hw.row(j).transpose();
       const StateVec fj = j == 0 ? f[0] : ut_times(hj);
@@ -941,6 +1022,38 @@ class VectorCalibrationFilter {
       ++window_nis_n_;
     }
     return VecResult::kApplied;
+  }
+
+  // E-VF-10, per live sample at the prior: covariance matching of the whitened innovation y,
+  // E[y y^T] - Hw P Hw^T = lm Aw + la (I - Aw), Aw the whitened magnetometer part, lm and la the
+  // ratios of the true to the configured noise variances; the running means of the normal
+  // equations' terms (Frobenius products) are kept. (A replay's innovations start from a diffuse
+  // prior, where Hw P Hw^T dwarfs the noise: live samples only.)
+  void note_innovation(const LinExtras& ex, const std::array<StateVec, 3>& f,
+                       const Vec3<Scalar>& y) noexcept {
+    Mat3<Scalar> e;
+    for (int i = 0; i < 3; ++i)
+      for (int j = 0; j < 3; ++j)
+        e(i, j) = y(i) * y(j) - f[static_cast<std::size_t>(i)].dot(
+                                    d_.cwiseProduct(f[static_cast<std::size_t>(j)]));
+    const Mat3<Scalar> la = lower_solve(ex.l, ex.cov_mag);
+    const Mat3<Scalar> aw = lower_solve(ex.l, Mat3<Scalar>(la.transpose()));
+    const Mat3<Scalar> bw = Mat3<Scalar>::Identity() - aw;
+    Vec<Scalar, 5> t;
+    t << aw.cwiseProduct(aw).sum(), aw.cwiseProduct(bw).sum(), bw.cwiseProduct(bw).sum(),
+        aw.cwiseProduct(e).sum(), bw.cwiseProduct(e).sum();
+    if (!t.allFinite()) return;
+    if (nz_n_ < kStatsCountCap) ++nz_n_;
+    nz_mean_ += (t - nz_mean_) / static_cast<Scalar>(nz_n_);
+    nz_recent_ += (t - nz_recent_) / static_cast<Scalar>(std::min(nz_n_, kRecentWindow));
+  }
+  // lm, la from the normal equations' terms (E-VF-10); false when not solvable.
+  static bool solve_noise_ratios(const Vec<Scalar, 5>& t, Scalar* lm, Scalar* la) noexcept {
+    const Scalar det = t(0) * t(2) - t(1) * t(1);
+    if (!(det > Scalar(1e-4) * t(0) * t(2))) return false;
+    *lm = (t(2) * t(3) - t(1) * t(4)) / det;
+    *la = (t(0) * t(4) - t(1) * t(3)) / det;
+    return std::isfinite(*lm) && std::isfinite(*la);
   }
 
   void add_process_noise(Scalar interval_s) noexcept {
@@ -970,7 +1083,7 @@ class VectorCalibrationFilter {
       }
     }
     if (held_[kRmHeading]) ++counters_.heading_held;
-    const VecResult vr = vector_update(p, true);
+    const VecResult vr = vector_update(p, true, true);
     if (vr == VecResult::kFailed) return reset(VfResetReason::kNonFiniteState);
     if (vr == VecResult::kGated) {
       ++counters_.gated;
@@ -1119,6 +1232,11 @@ class VectorCalibrationFilter {
   Scalar last_nis_{0};
   Scalar noise_factor_{1};                       // replay damping (1 when running live)
   Vec3<Scalar> ref_dir_ = Vec3<Scalar>::Zero();  // reference update's direction (E-VF-4)
+  // E-VF-10: running means over the live samples since the last (re)start.
+  // E-VF-10: running means of the covariance matching over the live samples since the (re)start.
+  std::uint32_t nz_n_ = 0;
+  Vec<Scalar, 5> nz_mean_ = Vec<Scalar, 5>::Zero();    // <Aw,Aw> <Aw,Bw> <Bw,Bw> <Aw,E> <Bw,E>
+  Vec<Scalar, 5> nz_recent_ = Vec<Scalar, 5>::Zero();  // the same over about kRecentWindow
 };
 
 template <typename Scalar, int kInitCapacity, int kReplayCapacity>
@@ -1229,6 +1347,141 @@ VfSigmas<Scalar> VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>
   }
   s.dt_s = sd(kDt);
   return s;
+}
+
+template <typename Scalar, int kInitCapacity, int kReplayCapacity>
+VfOutputUncertainty<Scalar> VectorCalibrationFilter<
+    Scalar, kInitCapacity, kReplayCapacity>::output_uncertainty() const noexcept {
+  VfOutputUncertainty<Scalar> o;
+  if (!running_ || tilt_n_ < 1) return o;
+  // The envelope (E-VF-10): body verticals u that reproduce the mean and covariance of those seen
+  // since the start (mean +- sqrt(3 lambda_k) e_k, weights 1/6), each at kEnvelopeHeadings headings
+  // (exact for the heading average of the quartic terms below).
+  const Mat3<Scalar> cov_u =
+      tilt_n_ > 1 ? Mat3<Scalar>(tilt_m2_ / static_cast<Scalar>(tilt_n_)) : Mat3<Scalar>::Zero();
+  Vec3<Scalar> ev;
+  Mat3<Scalar> evec;
+  if (!symmetric_eigen_jacobi<Scalar, 3>(cov_u, &ev, &evec)) return o;
+  std::array<Vec3<Scalar>, 6> tilts;
+  for (std::size_t k = 0; k < 3; ++k) {
+    const int c = static_cast<int>(k);
+    const Vec3<Scalar> d = std::sqrt(Scalar(3) * std::max(ev(c), Scalar(0))) * evec.col(c);
+    tilts[2 * k] = tilt_mean_ + d;
+    tilts[2 * k + 1] = tilt_mean_ - d;
+  }
+  const StateVec xf = full();
+  Mat3<Scalar> wm = Mat3<Scalar>::Zero();
+  for (int k = 0; k < kWEntries; ++k)
+    wm(kWRow[static_cast<std::size_t>(k)], kWCol[static_cast<std::size_t>(k)]) = xf(kW0 + k);
+  if (!(std::abs(wm.determinant()) > Scalar(0))) return o;
+  const Mat3<Scalar> w_inv = wm.inverse();
+  const Mat3<Scalar> rm = rm_current().toRotationMatrix();
+  const Vec3<Scalar> h_n = xf.template segment<3>(kHn0);
+  const Scalar dtemp = delta_t(kNaN);
+  const Vec3<Scalar> o_t = xf.template segment<3>(kO0) + xf.template segment<3>(kTc0) * dtemp;
+  CalMat gv = CalMat::Zero(), gi = CalMat::Zero();
+  Scalar nv{0}, ni{0};
+  int n = 0;
+  for (const Vec3<Scalar>& t_raw : tilts) {
+    const Scalar tn = t_raw.norm();
+    const Vec3<Scalar> u = tn > Scalar(0) ? Vec3<Scalar>(t_raw / tn) : Vec3<Scalar>::UnitZ();
+    // T: the rotation taking the n-frame vertical e3 to u (R_bn = T Rz(psi) has R_bn e3 = u).
+    const Vec3<Scalar> ax = Vec3<Scalar>::UnitZ().cross(u);
+    const Scalar sa = ax.norm();
+    const Scalar angle = std::atan2(sa, u(2));
+    Mat3<Scalar> t = Mat3<Scalar>::Identity();
+    if (sa > Scalar(0)) {
+      t = exp_so3(Vec3<Scalar>(ax * (angle / sa)));
+    } else if (u(2) < Scalar(0)) {
+      t = exp_so3(Vec3<Scalar>(kPi<Scalar>, Scalar(0), Scalar(0)));
+    }
+    for (int k = 0; k < kEnvelopeHeadings; ++k) {
+      const Scalar psi =
+          Scalar(2) * kPi<Scalar> * static_cast<Scalar>(k) / static_cast<Scalar>(kEnvelopeHeadings);
+      const Mat3<Scalar> r = t * exp_so3(Vec3<Scalar>(Scalar(0), Scalar(0), psi));
+      // The raw reading the current model predicts there (normalised), no rate: the output's
+      // dependence on the calibration states only.
+      Prepared p;
+      p.m = w_inv * (rm * (r * h_n)) + o_t;
+      p.r = r;
+      p.omega.setZero();
+      p.f = kNaN;
+      p.dtemp = dtemp;
+      Vec3<Scalar> rw;
+      Mat<Scalar, 3, kStates> hw;
+      LinExtras ex;
+      if (!linearise(p, &rw, &hw, &ex)) continue;
+      Mat<Scalar, 3, kCalStates> hc;
+      for (int i = 0; i < kCalStates; ++i)
+        hc.col(i) = ex.h.col(kCalIndex[static_cast<std::size_t>(i)]);
+      const Scalar gn = ex.g.norm();
+      if (!(gn > Scalar(0))) continue;
+      const Vec3<Scalar> g_dir = ex.g / gn;
+      const Vec<Scalar, kCalStates> hi = hc.transpose() * g_dir;
+      gv.noalias() += hc.transpose() * hc;
+      gi.noalias() += hi * hi.transpose();
+      nv += ex.cov.trace();
+      ni += g_dir.dot(ex.cov * g_dir);
+      ++n;
+    }
+  }
+  if (n == 0) return o;
+  o.attitudes = static_cast<std::uint32_t>(n);
+  // tr(P_cc G) = sum_k D_k u_k^T G u_k over the columns u_k of U restricted to the calibration
+  // states (P = U D U^T, normalised units).
+  Scalar tv{0}, ti{0};
+  for (int k = 0; k < kStates; ++k) {
+    Vec<Scalar, kCalStates> uk;
+    for (int i = 0; i < kCalStates; ++i)
+      uk(i) = u_(kCalIndex[static_cast<std::size_t>(i)], k);
+    if (uk.squaredNorm() == Scalar(0)) continue;
+    tv += d_(k) * uk.dot(gv * uk);
+    ti += d_(k) * uk.dot(gi * uk);
+  }
+  const Scalar sc = scale_or_one();
+  const Scalar inv_n = Scalar(1) / static_cast<Scalar>(n);
+  o.vector_nT = sc * std::sqrt(std::max(tv * inv_n, Scalar(0)) / Scalar(3));
+  o.intensity_nT = sc * std::sqrt(std::max(ti * inv_n, Scalar(0)));
+  o.vector_noise_nT = sc * std::sqrt(std::max(nv * inv_n, Scalar(0)) / Scalar(3));
+  o.intensity_noise_nT = sc * std::sqrt(std::max(ni * inv_n, Scalar(0)));
+  return o;
+}
+
+template <typename Scalar, int kInitCapacity, int kReplayCapacity>
+VfNoiseEstimate<Scalar>
+VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>::innovation_noise() const noexcept {
+  VfNoiseEstimate<Scalar> e;
+  e.samples = nz_n_;
+  if (nz_n_ < kMinNoiseSamples) return e;
+  const Scalar n11 = nz_mean_(0), n12 = nz_mean_(1), n22 = nz_mean_(2);
+  const Scalar b1 = nz_mean_(3), b2 = nz_mean_(4);
+  const Scalar n = static_cast<Scalar>(nz_n_);
+  const Scalar sm = cfg_.mag_noise_nT;
+  const Scalar sa = cfg_.attitude_noise_rad;
+  const Scalar det = n11 * n22 - n12 * n12;
+  Scalar lm{0}, la{0}, inv11{0}, inv22{0};
+  // The attitude part is separable when it is not (nearly) a multiple of the magnetometer part.
+  e.has_attitude = sa > Scalar(0) && det > Scalar(1e-4) * n11 * n22;
+  if (e.has_attitude) {
+    lm = (n22 * b1 - n12 * b2) / det;
+    la = (n11 * b2 - n12 * b1) / det;
+    inv11 = n22 / det;
+    inv22 = n11 / det;
+  } else if (n11 > Scalar(0)) {
+    // The whole innovation as magnetometer noise.
+    lm = (b1 + b2) / (n11 + Scalar(2) * n12 + n22);
+    inv11 = Scalar(1) / (n11 + Scalar(2) * n12 + n22);
+  }
+  if (!(lm > Scalar(0)) || !std::isfinite(lm)) return e;
+  // Var(lambda) = 2 N^-1 lambda^2 for Gaussian innovations whitened to unit variance (E-VF-10).
+  e.valid = true;
+  e.mag_nT = sm * std::sqrt(lm);
+  e.mag_sigma_nT = e.mag_nT * std::sqrt(inv11 / (Scalar(2) * n));
+  if (e.has_attitude) {
+    e.attitude_rad = sa * std::sqrt(std::max(la, Scalar(0)));
+    e.attitude_sigma_rad = e.attitude_rad * std::sqrt(inv22 / (Scalar(2) * n));
+  }
+  return e;
 }
 
 // Compiled once per scalar (firmware/core/src/inst_vector_<scalar>.cpp, the

@@ -51,7 +51,9 @@ class VectorLoopCalibrator {
     core::Vec3<double> h_n_nT = core::Vec3<double>::Zero();
     double time_offset_s{0};
     core::VfSigmas<double> sigmas{};
-    double worst_sigma_ratio{0};  // largest parameter 1-sigma over its readiness limit
+    // The calibration's output uncertainty over the survey envelope (E-VF-10).
+    core::VfOutputUncertainty<double> output{};
+    double readiness_ratio{0};  // largest parameter 1-sigma over its readiness limit
   };
   Diagnostics diagnostics() const noexcept;
 

@@ -89,6 +89,34 @@ LoopConfig<Scalar> untold_loop() {
   return lc;
 }
 
+// What the applied model does to noise-free readings against the TRUE field, over the attitudes
+// of the whole manoeuvre (every heading, the tilts flown; E-VF-10's envelope): RMS of the |h|
+// error and per-axis RMS of the E/N/U error.
+struct TruthErrors {
+  double intensity_nT = 0, vector_nT = 0;
+};
+template <typename Scalar>
+TruthErrors truth_output_errors(const SensorModel<Scalar>& applied) {
+  SensorModel<double> m;
+  m.w = applied.w.template cast<double>();
+  m.o = applied.o.template cast<double>();
+  m.rm = applied.rm.template cast<double>();
+  const SensorModel<double> truth = from_li(paper_li());
+  const Vec3<double> h_n = paper_h_n();
+  Compensator<double> comp(m);
+  double si = 0, sv = 0;
+  int n = 0;
+  for (double t = 0; t < 60; t += 0.1, ++n) {
+    const Mat3<double> r = manoeuvre(t);
+    Compensated<double> c;
+    EXPECT_TRUE(comp.compensate(truth.predict_raw(r, h_n), &c));
+    const Vec3<double> h = Compensator<double>::to_nav(c.h_b, r);
+    si += (h.norm() - h_n.norm()) * (h.norm() - h_n.norm());
+    sv += (h - h_n).squaredNorm() / 3;
+  }
+  return TruthErrors{std::sqrt(si / n), std::sqrt(sv / n)};
+}
+
 TEST(VectorCalibrator, CalibratesThroughTheLoopWithEstimatedNoise) {
   const SimSpec spec;  // 3 nT, 0.05 deg: field-grade noise, not told
   const auto data = simulate_run(spec, 7);
@@ -115,14 +143,20 @@ TEST(VectorCalibrator, CalibratesThroughTheLoopWithEstimatedNoise) {
   // Every sample reached the loop's calibrator through the extended add().
   EXPECT_GT(cal->counts().seen, 0U);
   EXPECT_EQ(cal->counts().nonfinite, 0U);
-  // The applied model against the truth. Per-sample field errors of this size are far below the
-  // noise: F |dW| < 1 nT equivalent scale, |do| within a few nT, Rm within 0.02 deg (0.05 deg
-  // attitude noise per sample, thousands of samples).
+  // The applied model against the truth, on the outputs over the manoeuvre's attitudes: ready()
+  // promises a calibration 1-sigma of at most 0.5 of the per-sample noise there (E-VF-10); the
+  // realised error is one draw of it, bounded here at 3 of those 1-sigmas (|h|: 1.5 x 3 nT).
+  // Rm within 0.02 deg (0.05 deg attitude noise per sample, hundreds of samples).
   const SensorModel<double> truth = from_li(paper_li());
   const SensorModel<double>& m = loop.active_model();
   const double f = paper_h_n().norm();
-  EXPECT_LT((m.w - truth.w).cwiseAbs().maxCoeff() * f, 5.0);
-  EXPECT_LT((m.o - truth.o).cwiseAbs().maxCoeff(), 3.0);
+  const TruthErrors te = truth_output_errors(m);
+  std::printf(
+      "vs truth over the manoeuvre: |h| %.3f nT RMS, E/N/U %.3f nT per axis; F dW %.2f nT, "
+      "do %.2f nT, Rm %.4f deg\n",
+      te.intensity_nT, te.vector_nT, (m.w - truth.w).cwiseAbs().maxCoeff() * f,
+      (m.o - truth.o).cwiseAbs().maxCoeff(), m.rm.angularDistance(truth.rm) / kDeg);
+  EXPECT_LT(te.intensity_nT, 3 * 0.5 * spec.mag_sigma_nT);
   EXPECT_LT(m.rm.angularDistance(truth.rm) / kDeg, 0.02);
   // The E/N/U field of the applied model on fresh noise-free readings: within the INS floor.
   Compensator<double> comp(m);
@@ -294,10 +328,13 @@ TEST(VectorCalibrator, FloatCalibratesThroughTheLoop) {
   ASSERT_EQ(loop.state(), CalState::kApplied)
       << cal_state_name(loop.state()) << " " << cal_failure_name(loop.failure()) << " "
       << vec_cal_code_name(loop.solver_code());
+  // As the double test: the outputs against the truth over the manoeuvre.
   const SensorModel<double> truth = from_li(paper_li());
   const SensorModel<float>& m = loop.active_model();
-  EXPECT_LT((m.w.cast<double>() - truth.w).cwiseAbs().maxCoeff() * paper_h_n().norm(), 5.0);
-  EXPECT_LT((m.o.cast<double>() - truth.o).cwiseAbs().maxCoeff(), 3.0);
+  const TruthErrors te = truth_output_errors(m);
+  std::printf("float vs truth over the manoeuvre: |h| %.3f nT RMS, E/N/U %.3f nT per axis\n",
+              te.intensity_nT, te.vector_nT);
+  EXPECT_LT(te.intensity_nT, 3 * 0.5 * SimSpec{}.mag_sigma_nT);
   EXPECT_LT(m.rm.cast<double>().angularDistance(truth.rm) / kDeg, 0.02);
 }
 

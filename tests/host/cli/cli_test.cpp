@@ -361,12 +361,10 @@ TEST_F(Cli, DemoWithTheVectorEkfCalibratorMatchesTheLiCalibratorAgainstTheTruth)
   EXPECT_LT(cal.model.rm.angularDistance(truth.rm), 0.05 * magvec::core::kPi<double> / 180);
 }
 
-// KNOWN GAP (expected failure, tests/host/cli/CMakeLists.txt): measured, after 90 s of the survey
-// scenario (0.3 nT, 0.015 deg) the calibrator is still collecting: the largest parameter 1-sigma is
-// 1.6x its readiness limit (vector_calibrator.hpp: 0.5 of the per-sample noise, here 0.14 nT for
-// an offset), progress 0.45, while the calibration's 1-sigma over the survey envelope is already
-// 0.15 nT (E/N/U) and 0.01 nT (|h|). Output-error criteria were tried and refused: they apply
-// candidates before the filter's covariance is consistent (vector_calibrator.hpp, E-VF-10).
+// Measured: applied after 90 s of the survey scenario (0.3 nT, 0.015 deg) with defaults; the
+// calibration's 1-sigma over the survey envelope is 0.12 nT for |h| against 0.27 nT of noise
+// (readiness at 0.5, E-VF-10). Under the earlier per-parameter rule it was still collecting
+// (an offset's 1-sigma at 1.6x its limit), which this test recorded as a known gap.
 TEST_F(Cli, RunWithTheVectorEkfCalibratorCalibratesWithDefaults) {
   const Result r = run("run --sim survey --duration 90 --seed 3 --calibrator vector-ekf --out " +
                        file("vec.csv"));

@@ -1031,11 +1031,16 @@ class VectorCalibrationFilter {
   // prior, where Hw P Hw^T dwarfs the noise: live samples only.)
   void note_innovation(const LinExtras& ex, const std::array<StateVec, 3>& f,
                        const Vec3<Scalar>& y) noexcept {
-    Mat3<Scalar> e;
+    Mat3<Scalar> hph;
     for (int i = 0; i < 3; ++i)
       for (int j = 0; j < 3; ++j)
-        e(i, j) = y(i) * y(j) - f[static_cast<std::size_t>(i)].dot(
-                                    d_.cwiseProduct(f[static_cast<std::size_t>(j)]));
+        hph(i, j) =
+            f[static_cast<std::size_t>(i)].dot(d_.cwiseProduct(f[static_cast<std::size_t>(j)]));
+    // A sample whose predicted innovation is mostly the state's uncertainty (just after a start,
+    // or a state released with its prior) says little about the noise and much about how well
+    // that uncertainty is known: skipped while the state part exceeds the noise part (tr 3).
+    if (!(hph.trace() <= Scalar(3))) return;
+    const Mat3<Scalar> e = y * y.transpose() - hph;
     const Mat3<Scalar> la = lower_solve(ex.l, ex.cov_mag);
     const Mat3<Scalar> aw = lower_solve(ex.l, Mat3<Scalar>(la.transpose()));
     const Mat3<Scalar> bw = Mat3<Scalar>::Identity() - aw;

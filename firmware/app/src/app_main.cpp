@@ -31,6 +31,9 @@
 //   n=<k>      stop after k magnetometer samples
 //   tick_us=<k> sample clock period in microseconds (default kDefaultTickUs; boards with a clock)
 // Exit code 0 when every on-target check passed (power-cut sweep, reload, calibration applied).
+// MAGVEC_APP_VECTOR=1 builds the same image with the online vector calibration filter as the
+// calibrator (core::VectorCalibrator, calibrator mode `vector-ekf`, docs/equations.md E-VF) in
+// place of the scalar EKF; the solve is then a read of the filter, still run in idle time.
 #include <algorithm>
 #include <atomic>
 #include <cstdint>
@@ -42,6 +45,7 @@
 #include "magvec/app/record_line_sink.hpp"
 #include "magvec/core/ekf_calibrator.hpp"
 #include "magvec/core/sensor_loop.hpp"
+#include "magvec/core/vector_calibrator.hpp"
 #include "magvec/drivers/ads131_fluxgate.hpp"
 #include "magvec/drivers/param_store.hpp"
 #include "magvec/drivers/sbg_can.hpp"
@@ -52,6 +56,9 @@
 
 #ifndef MAGVEC_APP_SCALAR
 #error "MAGVEC_APP_SCALAR (float or double) must be defined by the build"
+#endif
+#ifndef MAGVEC_APP_VECTOR
+#define MAGVEC_APP_VECTOR 0
 #endif
 
 namespace magvec::app {
@@ -85,12 +92,34 @@ sim::SimRigConfig make_rig_config() noexcept {
 // Alignment store of the calibrator (misalignment fit): 128 decimated samples (2 deg apart) keep
 // core + loop within the 16 KiB RAM budget in float (256 would need 13 KiB for the store alone).
 constexpr std::size_t kAlignCapacity = 128;
+#if MAGVEC_APP_VECTOR
+// The vector filter's replay store (E-VF-1): 128 samples (6.5 KiB in float) instead of the
+// host's 512; its start-up set as on the host.
+constexpr int kVectorReplay = 128;
+using Calibrator = core::VectorCalibrator<Scalar, 64, kVectorReplay>;
+#else
 using Calibrator = core::EkfCalibrator<Scalar, kAlignCapacity>;
+#endif
 using Loop = core::SensorLoop<Scalar, Calibrator>;
 // 64 INS epochs (0.64 s at 100 Hz); 8 queued magnetometer samples (160 ms at 50 Hz) cover the
 // 50 ms fusion horizon with room for late CAN bursts.
 using Pipeline = pipeline::DevicePipeline<Scalar, Calibrator, 64, 8>;
 
+#if MAGVEC_APP_VECTOR
+// Defaults, as a user gets them: the noise is estimated from the data, the scenario's per-sample
+// scalar reference ties the field; 50 Hz samples.
+core::VectorCalibratorConfig<Scalar> make_cal_config(const sim::ScenarioConfig& s) noexcept {
+  core::VectorCalibratorConfig<Scalar> c;
+  c.filter.sample_interval_s = static_cast<Scalar>(1.0 / s.rate_hz);
+  return c;
+}
+const char* cal_code_name(std::uint8_t code) noexcept {
+  return core::vec_cal_code_name(code);
+}
+#else
+const char* cal_code_name(std::uint8_t code) noexcept {
+  return core::ekf_cal_code_name(code);
+}
 core::EkfCalibratorConfig<Scalar> make_cal_config(const sim::ScenarioConfig& s) noexcept {
   core::EkfCalibratorConfig<Scalar> c;
   c.ekf.noise_sigma_nT = static_cast<Scalar>(s.mag_noise_nT);
@@ -99,6 +128,7 @@ core::EkfCalibratorConfig<Scalar> make_cal_config(const sim::ScenarioConfig& s) 
   c.min_updates = 1500;
   return c;
 }
+#endif
 
 core::PipelineConfig<Scalar> make_pipeline_config(const sim::ScenarioConfig& s) noexcept {
   core::PipelineConfig<Scalar> c;
@@ -123,7 +153,15 @@ core::PipelineConfig<Scalar> make_pipeline_config(const sim::ScenarioConfig& s) 
 // = 500 000 instructions per magnetometer sample, of which the tick handler's simulated world
 // (simulator, rig, codecs: ~340 000 on the M4F, soft double) takes the larger part; the main loop
 // gets roughly what a 168 MHz M4F has per sample at 1 kHz.
+#if MAGVEC_APP_VECTOR
+// The vector image: 3 360 us = 3.36 M instructions per sample, what a 168 MHz M4F has at the
+// scenario's 50 Hz. Its calibrator starts from data inside one sample (two batch fits and the
+// replay passes, ~60 M instructions, E-VF-1): at 500 us the acquisition queue would overflow
+// during that sample (as it would on an M4F sampling at 300 Hz); at 50 Hz it holds.
+constexpr std::uint32_t kDefaultTickUs = 3360;
+#else
 constexpr std::uint32_t kDefaultTickUs = 500;
+#endif
 // The solve's result is installed after this many records past the one that raised the ticket
 // (the solve must be done by then; if it is not, the main loop finishes it before going on).
 constexpr std::uint32_t kSolveInstallRecords = 8;
@@ -634,7 +672,7 @@ int app_main(const char* args) noexcept {
       if (state == core::CalState::kApplied) ms.applied = st.processed;
       if (state == core::CalState::kFailed) {
         w.str("MV cal_failed failure=").u(static_cast<std::uint64_t>(g_loop.failure()));
-        w.str(" code=").str(core::ekf_cal_code_name(g_loop.solver_code())).end();
+        w.str(" code=").str(cal_code_name(g_loop.solver_code())).end();
         rc = rc != 0 ? rc : 6;
       }
       prev_state = state;
@@ -733,16 +771,33 @@ int app_main(const char* args) noexcept {
   }
 
   const auto& ekf = g_cal.filter();
-  const core::EkfCounters& ec = ekf.counters();
   const core::LoopHealth& lh = g_loop.health();
+#if MAGVEC_APP_VECTOR
+  const core::VfCounters& ec = ekf.counters();
+  w.str("MV vf initialised=").u(ekf.initialised() ? 1 : 0).str(" updates=").u(ec.updates);
+  w.str(" gated=").u(ec.gated).str(" resets=").u(ec.resets);
+  w.str(" init_failures=").u(ec.init_failures).str(" noise_nT=");
+  w.fixed(static_cast<double>(g_cal.noise().mag_nT), 4).str(" ins_deg=");
+  w.fixed(static_cast<double>(g_cal.noise().attitude_deg), 5).str(" time_offset_ms=");
+  w.fixed(1e3 * static_cast<double>(ekf.time_offset_s()), 4).end();
+  const core::VfOutputUncertainty<Scalar>& ou = g_cal.output_uncertainty();
+  w.str("MV vf_output enu_nT=").fixed(static_cast<double>(ou.vector_nT), 4);
+  w.str(" enu_noise_nT=").fixed(static_cast<double>(ou.vector_noise_nT), 4);
+  w.str(" intensity_nT=").fixed(static_cast<double>(ou.intensity_nT), 4);
+  w.str(" intensity_noise_nT=").fixed(static_cast<double>(ou.intensity_noise_nT), 4).end();
+  constexpr std::uint32_t kAlignSamples = 0;  // the vector filter has no alignment store
+#else
+  const core::EkfCounters& ec = ekf.counters();
   w.str("MV ekf initialised=").u(ekf.initialised() ? 1 : 0).str(" updates=").u(ec.updates);
   w.str(" gated=").u(ec.gated).str(" reinit=").u(ec.reinitialisations);
   w.str(" init_failures=").u(ec.init_failures).end();
+  const auto kAlignSamples = g_cal.align_samples();
+#endif
   w.str("MV loop state=").str(core::cal_state_name(g_loop.state())).str(" cal_id=");
   w.u(g_loop.cal_id()).str(" samples=").u(lh.samples).str(" used=").u(lh.cal_used);
   w.str(" gated=").u(lh.cal_gated).str(" rejected=").u(lh.cal_rejected);
   w.str(" dropouts=").u(lh.dropouts).str(" device_errors=").u(lh.device_errors);
-  w.str(" no_attitude=").u(lh.no_attitude).str(" align_samples=").u(g_cal.align_samples()).end();
+  w.str(" no_attitude=").u(lh.no_attitude).str(" align_samples=").u(kAlignSamples).end();
   w.str("MV milestones init_fit=").u(ms.init_fit).str(" solve=").u(ms.solve);
   w.str(" applied=").u(ms.applied).str(" ready=").u(ms.ready).end();
   w.str("MV counts samples=").u(g_acq.samples).str(" read_errors=").u(g_acq.read_errors);
@@ -771,9 +826,22 @@ int app_main(const char* args) noexcept {
     report_model(w, "model", model);
     const core::SensorModel<Scalar> fm = ekf.model();
     report_vec(w, "b", fm.o.data(), 3);
+#if MAGVEC_APP_VECTOR
+    // The filter's 1-sigmas: W (row-major, structural zeros 0), offset (nT), Rm (rad).
+    const core::VfSigmas<Scalar> sg = ekf.sigmas();
+    Scalar sigma[15];
+    for (int i = 0; i < 9; ++i)
+      sigma[i] = sg.w(i / 3, i % 3);
+    for (int i = 0; i < 3; ++i) {
+      sigma[9 + i] = sg.o_nT(i);
+      sigma[12 + i] = sg.rm_rad(i);
+    }
+    report_vec(w, "sigma", sigma, 15);
+#else
     const core::Vec<Scalar, 12> sigma = ekf.sigma();
     report_vec(w, "sigma", sigma.data(), 12);
     report_g(w, ekf);
+#endif
     const Scalar vrms = g_loop.last_validation_rms_nT();
     report_vec(w, "validation_rms", &vrms, 1);
     const double rmse_cal = st.cal_samples > 0 ? std::sqrt(st.sum_sq_f_cal / st.cal_samples) : 0.0;

@@ -332,8 +332,15 @@ TEST(VectorCalibrator, FloatCalibratesThroughTheLoop) {
   const SensorModel<double> truth = from_li(paper_li());
   const SensorModel<float>& m = loop.active_model();
   const TruthErrors te = truth_output_errors(m);
-  std::printf("float vs truth over the manoeuvre: |h| %.3f nT RMS, E/N/U %.3f nT per axis\n",
-              te.intensity_nT, te.vector_nT);
+  std::printf(
+      "float vs truth over the manoeuvre: |h| %.3f nT RMS, E/N/U %.3f nT per axis; noise "
+      "%.3f nT, %.4f deg (start-up %.3f nT, %.4f deg)\n",
+      te.intensity_nT, te.vector_nT, static_cast<double>(cal->noise().mag_nT),
+      static_cast<double>(cal->noise().attitude_deg),
+      static_cast<double>(cal->startup_noise().mag_nT),
+      static_cast<double>(cal->startup_noise().attitude_deg));
+  EXPECT_NEAR(cal->noise().mag_nT, SimSpec{}.mag_sigma_nT, 0.25 * SimSpec{}.mag_sigma_nT);
+  EXPECT_NEAR(cal->noise().attitude_deg, SimSpec{}.att_sigma_deg, 0.25 * SimSpec{}.att_sigma_deg);
   EXPECT_LT(te.intensity_nT, 3 * 0.5 * SimSpec{}.mag_sigma_nT);
   EXPECT_LT(m.rm.cast<double>().angularDistance(truth.rm) / kDeg, 0.02);
 }

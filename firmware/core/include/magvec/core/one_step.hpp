@@ -275,7 +275,11 @@ class OneStepFit {
     const bool given = !opt.estimate_noise;
     const Scalar factor = given && opt.scale_sigma_by_residual ? out.chi2_per_dof : Scalar(1);
     const Eigen::LDLT<MatP> ldlt(a);
-    const MatP cov_model = ldlt.solve(MatP::Identity());
+    // Column by column: a matrix right-hand side takes Eigen's blocked triangular solve, whose
+    // workspace has a heap fallback the firmware images must not link (vector solves have none).
+    MatP cov_model;
+    for (int k = 0; k < kParams; ++k)
+      cov_model.col(k) = ldlt.solve(VecP::Unit(k));
     MatP cov = cov_model * factor;
     if (opt.fix_heading) cov(kIdxRm + kRmAlpha, kIdxRm + kRmAlpha) = Scalar(0);
     VecP sd;

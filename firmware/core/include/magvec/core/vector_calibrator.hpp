@@ -32,25 +32,20 @@
 // kRejected (counts().no_reference); the filter's gate -> kGated; everything else kUsed.
 //
 // ready(): the filter runs (initialised), the heading misalignment is no longer held (the tilt
-// spread reached the batch methods' limit, E-VF-7), and every parameter of the candidate is
-// determined well enough that its uncertainty adds little to the per-sample noise: with F the
-// field, sm and sa the magnetometer and attitude noise the filter runs with,
-//   F sigma(W_ij) <= k sm,   sigma(o_i) <= k sm,   F sigma(phi_i) <= k sqrt(sm^2 + (F sa)^2),
-// k = max_sigma_ratio (0.5: each parameter adds at most 12 % in quadrature to the noise; 0.2, 2 %,
-// left the z axis of a 60 s, 3 nT test manoeuvre undetermined, F sigma(W22) and sigma(o_z) 1.1 nT
-// against a 0.58 nT limit: a limit a field manoeuvre must reach in minutes, not hours). The
-// criteria are ratios of the filter's own covariance to its own noise figures, so they are the
-// same at any noise level and any field: they measure how much the data determined, not nT.
-// progress() is the smallest of those ratios' fulfilment (and the start-up collection before).
-// Measured, the rule is strict where parameters are determined only in combination (an axis's
-// offset and scale through a near-constant vertical field): a 90-s survey manoeuvre stays at 1.6x
-// the limit. Two output-based rules were tried (E-VF-10) and refused: the calibration's output
-// error over the samples seen, and over the survey envelope (every heading at the tilts seen),
-// both against the outputs' noise. Both applied candidates 20-30 nT off in W F and o on a 3 nT,
-// 0.05 deg manoeuvre, 5 s after the start, while the filter's covariance was not yet consistent
-// with its innovations (the attitude part of the innovations at 0.26 of its predicted variance);
-// a 20-nT candidate failed the held-out validation. output_uncertainty() keeps the envelope
-// figures as a report (refreshed every kRefreshEvery samples: ~60 000 flops each).
+// spread reached the batch methods' limit, E-VF-7), and the calibration's remaining uncertainty
+// adds little to the outputs over the survey envelope (E-VF-10: every heading, at the tilts seen
+// since the start): its 1-sigma of each E/N/U component and of |h| is at most k = max_output_ratio
+// (0.5: at most 12 % in quadrature) of those outputs' per-sample noise. The ratios are the
+// filter's own covariance against its own noise figures, so the rule is the same at any noise
+// level and any field; it trusts the covariance, which is consistent since each sample's rate
+// comes from its neighbours (measured: offsets' errors within 2.3 of their 1-sigmas). The first
+// rule, every parameter's 1-sigma at most k of the noise it is seen through
+// (F sigma(W_ij) <= k sm, sigma(o_i) <= k sm, F sigma(phi_i) <= k sqrt(sm^2 + (F sa)^2)), is too
+// strict where the manoeuvre determines parameters only in combination (an axis's offset and
+// scale through a near-constant vertical field): a 90-s survey manoeuvre stayed at 1.6x its limit
+// while the output error on the survey lines was at the floor. parameter_ratio() reports it.
+// progress() is the fulfilment of the readiness and noise ratios (and the start-up collection
+// before). The envelope costs ~60 000 flops: it is refreshed every refresh_every samples.
 //
 // Noise refinement (E-VF-10): once the filter runs, its live innovations estimate both noise
 // figures again (covariance matching), from thousands of samples instead of the start-up set's
@@ -134,6 +129,8 @@ struct VectorCalibratorConfig {
   Scalar max_output_ratio{Scalar(0.5)};
   // Readiness with estimated noise: each figure's relative 1-sigma at most this (see the top).
   Scalar max_noise_rel_sigma{Scalar(0.05)};
+  // Samples between two evaluations of the output uncertainty (>= 1; see the top).
+  int refresh_every{64};
   // Longest interval over which a rate is taken from two attitudes.
   Scalar max_rate_span_s{Scalar(0.5)};
 };
@@ -149,13 +146,15 @@ struct VectorCalibratorCounts {
   std::uint32_t noise_failures{0};  // ... that gave no estimate
 };
 
-template <typename Scalar, int InitCapacity = 64>
+// ReplayCapacity: the filter's replay store (E-VF-1; its largest buffer: 52 bytes per sample in
+// float), smaller on a small MCU.
+template <typename Scalar, int InitCapacity = 64, int ReplayCapacity = 512>
 class VectorCalibrator {
   static_assert(CoreScalar<Scalar>);
 
  public:
   using Config = VectorCalibratorConfig<Scalar>;
-  using Filter = VectorCalibrationFilter<Scalar, InitCapacity>;
+  using Filter = VectorCalibrationFilter<Scalar, InitCapacity, ReplayCapacity>;
 
   explicit VectorCalibrator(const Config& config = Config{}) noexcept : cfg_(config) { begin(); }
 
@@ -255,7 +254,7 @@ class VectorCalibrator {
   // Samples kept for the noise estimate (before it) and the number it needs.
   int noise_samples() const noexcept { return n_kept_; }
   int samples_needed() const noexcept { return filter_.config().init_samples; }
-  // The output uncertainty over the survey envelope as last refreshed (E-VF-10; a report).
+  // The output uncertainty over the survey envelope as last refreshed (E-VF-10).
   const VfOutputUncertainty<Scalar>& output_uncertainty() const noexcept { return out_; }
   // The readiness ratio (<= 1: determined; inf before the start and the first report): the
   // output rule's (E-VF-10), the larger of the E/N/U and |h| ratios over max_output_ratio.
@@ -301,8 +300,6 @@ class VectorCalibrator {
       r = std::max(r, n.attitude_sigma_deg / (k * n.attitude_deg));
     return std::isfinite(r) ? r : std::numeric_limits<Scalar>::infinity();
   }
-  // Samples between two refreshes of the output uncertainty report.
-  static constexpr int kRefreshEvery = 64;
 
  private:
   static CalibratorSolve fail(VecCalCode code) noexcept {
@@ -412,7 +409,7 @@ class VectorCalibrator {
     noise_step_deg_ = std::min(Scalar(2) * noise_step_deg_, Scalar(45));
   }
 
-  // Recomputes the output uncertainty report.
+  // Recomputes the output uncertainty.
   void refresh_output_report() noexcept {
     since_refresh_ = 0;
     out_ = filter_.initialised() ? filter_.output_uncertainty() : VfOutputUncertainty<Scalar>{};
@@ -439,9 +436,9 @@ class VectorCalibrator {
   VfSample<Scalar> pending_{};
 };
 
-template <typename Scalar, int InitCapacity>
-CalibratorAdd VectorCalibrator<Scalar, InitCapacity>::add(const MagSample<Scalar>& s,
-                                                          const Mat3<Scalar>* r_bn) noexcept {
+template <typename Scalar, int InitCapacity, int ReplayCapacity>
+CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity>::add(
+    const MagSample<Scalar>& s, const Mat3<Scalar>* r_bn) noexcept {
   ++counts_.seen;
   const bool bad_f = std::isinf(s.f_ref_nT);
   const bool bad_t = std::isinf(s.temperature_degC);
@@ -490,12 +487,13 @@ CalibratorAdd VectorCalibrator<Scalar, InitCapacity>::add(const MagSample<Scalar
   return out;
 }
 
-template <typename Scalar, int InitCapacity>
-CalibratorAdd VectorCalibrator<Scalar, InitCapacity>::process(const VfSample<Scalar>& v) noexcept {
+template <typename Scalar, int InitCapacity, int ReplayCapacity>
+CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity>::process(
+    const VfSample<Scalar>& v) noexcept {
   if (!noise_known_) return collect_for_noise(v);
   const bool was_running = filter_.initialised();
   const CalibratorAdd r = to_loop(filter_.update(v));
-  if (filter_.initialised() != was_running || ++since_refresh_ >= kRefreshEvery)
+  if (filter_.initialised() != was_running || ++since_refresh_ >= cfg_.refresh_every)
     refresh_output_report();
   return r;
 }

@@ -23,6 +23,9 @@ struct FakeCalibrator {
   bool refuse{false};
   bool aligned{true};
   float mag_noise_nT{std::numeric_limits<float>::quiet_NaN()};  // what the "solve" estimated
+  // The candidate's own 1-sigma of |h| and E/N/U from its covariance (NaN: not given).
+  float cal_sigma_f_nT{std::numeric_limits<float>::quiet_NaN()};
+  float cal_sigma_enu_nT{std::numeric_limits<float>::quiet_NaN()};
   int begins{0};
   void begin() noexcept {
     seen = 0;
@@ -40,6 +43,8 @@ struct FakeCalibrator {
     *out = result;
     CalibratorSolve r{true, 0, aligned};
     r.mag_noise_nT = mag_noise_nT;
+    r.calibration_sigma_f_nT = cal_sigma_f_nT;
+    r.calibration_sigma_enu_nT = cal_sigma_enu_nT;
     return r;
   }
 };
@@ -404,6 +409,32 @@ TEST(SensorLoop, SigmaFComesFromTheValidation) {
   EXPECT_EQ(loop.process(feed.next(truth_model(), &r), &r).sigma_f_nT, rms);
   loop.set_active(truth_model(), 9, true, 0.1);  // below the noise: the noise
   EXPECT_EQ(loop.process(feed.next(truth_model(), &r), &r).sigma_f_nT, 0.3);
+}
+
+// A solve that gives its candidate's own 1-sigma (from its covariance, as the vector filter does)
+// sets a floor under the records' sigma_F and sigma_ENU: the noise and the attitude noise combined
+// with it. The held-out window sees only its own attitudes; the covariance speaks for all.
+TEST(SensorLoop, TheCalibrationsOwnSigmaFloorsSigmaFAndSigmaEnu) {
+  FakeCalibrator cal;
+  cal.result = truth_model();
+  cal.cal_sigma_f_nT = 0.4f;    // above the held-out RMS of an exact model (the noise, 0.3)
+  cal.cal_sigma_enu_nT = 20.f;  // above the attitude noise's 9.4 nT
+  LoopConfig<double> cfg;
+  cfg.noise_nT = 0.3;
+  cfg.attitude_noise_deg = 0.01;
+  SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+  Feed feed;
+  run_to_end(loop, feed);
+  ASSERT_EQ(loop.state(), CalState::kApplied);
+  const double sf = std::hypot(0.3, 0.4);
+  EXPECT_NEAR(loop.active_sigma_f_nT(), sf, 1e-6);
+  const double att = 0.01 * kDeg * feed.h_n.norm();
+  EXPECT_NEAR(loop.active_sigma_enu_nT(), std::sqrt(sf * sf + att * att + 20.0 * 20.0), 1e-4);
+  Mat3<double> r;
+  const OutputRecord<double> rec = loop.process(feed.next(truth_model(), &r), &r);
+  EXPECT_EQ(rec.sigma_f_nT, loop.active_sigma_f_nT());
+  EXPECT_EQ(rec.sigma_enu_nT, loop.active_sigma_enu_nT());
+  // Without the figures (NaN) the loop keeps the held-out ones (the other tests).
 }
 
 // A survey team rarely knows its noise. With no configured noise (NaN) a candidate is judged by

@@ -125,6 +125,11 @@ struct CalibratorSolve {
   // The magnetometer noise 1-sigma per axis the solve used or estimated from its data (NaN: the
   // loop's configured one); sets the held-out intensity bound and the floor of sigma_f.
   float mag_noise_nT{std::numeric_limits<float>::quiet_NaN()};
+  // The 1-sigma the candidate's own uncertainty adds to |h| and to each E/N/U component, from its
+  // covariance (NaN: not given). The records' sigma_f and sigma_enu are never below the noise
+  // combined with these.
+  float calibration_sigma_f_nT{std::numeric_limits<float>::quiet_NaN()};
+  float calibration_sigma_enu_nT{std::numeric_limits<float>::quiet_NaN()};
 };
 
 template <typename Scalar>
@@ -393,6 +398,8 @@ class SensorLoop {
     // The configured noise overrides; without one, the noise the solve estimated from its data.
     candidate_noise_ =
         std::isfinite(config_.noise_nT) ? config_.noise_nT : static_cast<Scalar>(r.mag_noise_nT);
+    candidate_cal_sigma_f_ = static_cast<Scalar>(r.calibration_sigma_f_nT);
+    candidate_cal_sigma_enu_ = static_cast<Scalar>(r.calibration_sigma_enu_nT);
     validation_count_ = 0;
     sum_sq_candidate_ = 0;
     missing_reference_ = 0;
@@ -462,9 +469,13 @@ class SensorLoop {
       fail(CalFailure::kReferenceMismatch, 0);
       return;
     }
-    // sigma_f: the held-out intensity RMS (noise and calibration error), never below the noise;
-    // with a model reference combined with the model's 1-sigma, which bounds the absolute scale.
-    const Scalar relative_f = std::fmax(rms_c, candidate_noise_);
+    // sigma_f: the held-out intensity RMS (noise and calibration error), never below the noise
+    // (combined with the calibration's own 1-sigma when the solve gives it: the held-out window
+    // sees only its own attitudes); with a model reference combined with the model's 1-sigma,
+    // which bounds the absolute scale. (fmax ignores a NaN figure.)
+    const Scalar noise_cal_f = std::sqrt(candidate_noise_ * candidate_noise_ +
+                                         candidate_cal_sigma_f_ * candidate_cal_sigma_f_);
+    const Scalar relative_f = std::fmax(std::fmax(rms_c, candidate_noise_), noise_cal_f);
     const Scalar sigma_f = model_reference
                                ? std::sqrt(relative_f * relative_f +
                                            config_.reference_sigma_nT * config_.reference_sigma_nT)
@@ -495,9 +506,12 @@ class SensorLoop {
     // together; it is never taken below the intensity's sigma and the attitude noise (a short
     // held-out window with little motion understates both). Without a check (too few samples
     // with attitude) the floor alone.
-    active_sigma_enu_ = candidate_aligned_
-                            ? std::fmax(last_vector_rms_, std::sqrt(sigma_f * sigma_f + att * att))
-                            : kNaN;
+    // The calibration's own E/N/U 1-sigma (when the solve gives it) adds to that floor.
+    const Scalar enu_floor = std::sqrt(sigma_f * sigma_f + att * att);
+    const Scalar enu_cal =
+        std::sqrt(enu_floor * enu_floor + candidate_cal_sigma_enu_ * candidate_cal_sigma_enu_);
+    active_sigma_enu_ =
+        candidate_aligned_ ? std::fmax(std::fmax(last_vector_rms_, enu_floor), enu_cal) : kNaN;
     cal_id_ = ++max_cal_id_;
     ++health_.calibrations_applied;
     state_ = CalState::kApplied;
@@ -539,6 +553,8 @@ class SensorLoop {
   Scalar active_sigma_f_{config_.noise_nT};
   Scalar active_sigma_enu_{kNaN};
   Scalar candidate_noise_{config_.noise_nT};
+  Scalar candidate_cal_sigma_f_{kNaN};    // CalibratorSolve::calibration_sigma_f_nT
+  Scalar candidate_cal_sigma_enu_{kNaN};  // CalibratorSolve::calibration_sigma_enu_nT
   Scalar sum_f_{0};
   std::uint32_t vector_count_{0};
   Vec3<Scalar> vector_ref_ = Vec3<Scalar>::Zero();

@@ -221,6 +221,9 @@ class VectorCalibrator {
     const BatchNoise<Scalar> nz = noise();
     r.mag_noise_nT = static_cast<float>(nz.mag_nT);
     r.attitude_noise_deg = static_cast<float>(nz.attitude_deg);
+    // The candidate's own output 1-sigma over the survey envelope (E-VF-10).
+    r.calibration_sigma_f_nT = static_cast<float>(out_.intensity_nT);
+    r.calibration_sigma_enu_nT = static_cast<float>(out_.vector_nT);
     return r;
   }
 

@@ -132,8 +132,14 @@ core::EkfCalibratorConfig<Scalar> make_cal_config(const sim::ScenarioConfig& s) 
 
 core::PipelineConfig<Scalar> make_pipeline_config(const sim::ScenarioConfig& s) noexcept {
   core::PipelineConfig<Scalar> c;
+#if MAGVEC_APP_VECTOR
+  // Not told either: the loop judges the candidate by the noise its calibrator estimated.
+  c.loop.noise_nT = std::numeric_limits<Scalar>::quiet_NaN();
+  c.loop.attitude_noise_deg = std::numeric_limits<Scalar>::quiet_NaN();
+#else
   c.loop.noise_nT = static_cast<Scalar>(s.mag_noise_nT > 0 ? s.mag_noise_nT : 1.0);
   c.loop.attitude_noise_deg = static_cast<Scalar>(s.ins_noise_deg > 0 ? s.ins_noise_deg : 0.01);
+#endif
   c.ins_latency_us = kInsLatencyCompUs;
   c.horizon_us = kFusionHorizonUs;
   c.mag_period_us = pipeline::period_us_from_hz(s.rate_hz);

@@ -211,7 +211,7 @@ template <typename Scalar>
 struct VfOutputUncertainty {
   static constexpr Scalar kNaN = std::numeric_limits<Scalar>::quiet_NaN();
   std::uint32_t attitudes{0};        // envelope attitudes evaluated (0: not running)
-  Scalar vector_nT = kNaN;           // calibration error, per E/N/U axis (RMS over the samples)
+  Scalar vector_nT = kNaN;           // calibration error, per E/N/U axis (RMS over the envelope)
   Scalar intensity_nT = kNaN;        // calibration error of |h|
   Scalar vector_noise_nT = kNaN;     // per-sample noise per axis (magnetometer and attitude)
   Scalar intensity_noise_nT = kNaN;  // per-sample noise of |h| (magnetometer)

@@ -145,8 +145,9 @@ TEST(VectorCalibrator, CalibratesThroughTheLoopWithEstimatedNoise) {
   EXPECT_EQ(cal->counts().nonfinite, 0U);
   // The applied model against the truth, on the outputs over the manoeuvre's attitudes: ready()
   // promises a calibration 1-sigma of at most 0.5 of the per-sample noise there (E-VF-10); the
-  // realised error is one draw of it, bounded here at 3 of those 1-sigmas (|h|: 1.5 x 3 nT).
-  // Rm within 0.02 deg (0.05 deg attitude noise per sample, hundreds of samples).
+  // realised error is one draw of it, bounded here at 3 of those 1-sigmas (|h|: 1.5 x 3 nT). The
+  // parameters as well: F |dW| < 5 nT equivalent scale, |do| < 3 nT, Rm within 0.02 deg (0.05 deg
+  // attitude noise per sample, hundreds of samples).
   const SensorModel<double> truth = from_li(paper_li());
   const SensorModel<double>& m = loop.active_model();
   const double f = paper_h_n().norm();
@@ -157,6 +158,18 @@ TEST(VectorCalibrator, CalibratesThroughTheLoopWithEstimatedNoise) {
       te.intensity_nT, te.vector_nT, (m.w - truth.w).cwiseAbs().maxCoeff() * f,
       (m.o - truth.o).cwiseAbs().maxCoeff(), m.rm.angularDistance(truth.rm) / kDeg);
   EXPECT_LT(te.intensity_nT, 3 * 0.5 * spec.mag_sigma_nT);
+  EXPECT_LT((m.w - truth.w).cwiseAbs().maxCoeff() * f, 5.0);
+  EXPECT_LT((m.o - truth.o).cwiseAbs().maxCoeff(), 3.0);
+  // The filter itself over the whole manoeuvre (no loop stopping it at its candidate): every
+  // parameter near the truth, F |dW| < 5 nT equivalent scale, |do| < 3 nT.
+  auto whole = std::make_unique<VectorCalibrator<double>>();
+  for (const Item& it : data)
+    (void)whole->add(it.s, &it.r_meas);
+  const SensorModel<double> wm = whole->filter().model();
+  std::printf("whole run: F dW %.2f nT, do %.2f nT\n", (wm.w - truth.w).cwiseAbs().maxCoeff() * f,
+              (wm.o - truth.o).cwiseAbs().maxCoeff());
+  EXPECT_LT((wm.w - truth.w).cwiseAbs().maxCoeff() * f, 5.0);
+  EXPECT_LT((wm.o - truth.o).cwiseAbs().maxCoeff(), 3.0);
   EXPECT_LT(m.rm.angularDistance(truth.rm) / kDeg, 0.02);
   // The E/N/U field of the applied model on fresh noise-free readings: within the INS floor.
   Compensator<double> comp(m);
@@ -342,6 +355,8 @@ TEST(VectorCalibrator, FloatCalibratesThroughTheLoop) {
   EXPECT_NEAR(cal->noise().mag_nT, SimSpec{}.mag_sigma_nT, 0.25 * SimSpec{}.mag_sigma_nT);
   EXPECT_NEAR(cal->noise().attitude_deg, SimSpec{}.att_sigma_deg, 0.25 * SimSpec{}.att_sigma_deg);
   EXPECT_LT(te.intensity_nT, 3 * 0.5 * SimSpec{}.mag_sigma_nT);
+  EXPECT_LT((m.w.cast<double>() - truth.w).cwiseAbs().maxCoeff() * paper_h_n().norm(), 5.0);
+  EXPECT_LT((m.o.cast<double>() - truth.o).cwiseAbs().maxCoeff(), 3.0);
   EXPECT_LT(m.rm.cast<double>().angularDistance(truth.rm) / kDeg, 0.02);
 }
 

@@ -129,7 +129,7 @@ void describe(const VecCal& cal, std::ostream& os) {
   }
   os << "    time offset " << d.time_offset_s * 1e3 << " +- " << d.sigmas.dt_s * 1e3
      << " ms, heading " << (d.heading_held ? "held" : "estimated") << ", readiness ratio "
-     << d.readiness_ratio << " (ready at 1)"
+     << d.readiness_ratio << " (ready at 1; per parameter " << d.parameter_ratio << ")"
      << "\n    calibration 1-sigma over the survey envelope (every heading, the tilts seen): E/N/U "
      << d.output.vector_nT << " nT per axis (per-sample noise " << d.output.vector_noise_nT
      << " nT), |h| " << d.output.intensity_nT << " nT (noise " << d.output.intensity_noise_nT

@@ -56,6 +56,7 @@ VectorLoopCalibrator::Diagnostics VectorLoopCalibrator::diagnostics() const noex
   }
   d.output = c.output_uncertainty();
   d.readiness_ratio = c.readiness_ratio();
+  d.parameter_ratio = c.parameter_ratio();
   return d;
 }
 

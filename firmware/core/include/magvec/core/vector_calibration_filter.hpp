@@ -318,16 +318,6 @@ class VectorCalibrationFilter {
   VfNoiseEstimate<Scalar> innovation_noise() const noexcept;
   // Live samples before innovation_noise() is valid.
   static constexpr std::uint32_t kMinNoiseSamples = 100;
-  // Consistency (E-VF-10): the ratios of the variance the recent innovations show (about the last
-  // kRecentWindow live samples) to the variance the filter assumes, magnetometer and attitude
-  // parts. 1 for a consistent filter; NaN before kMinNoiseSamples or when not separable.
-  static constexpr std::uint32_t kRecentWindow = 256;
-  Vec<Scalar, 2> recent_noise_ratios() const noexcept {
-    Vec<Scalar, 2> r = Vec<Scalar, 2>::Constant(kNaN);
-    NoiseSolution ns;
-    if (nz_n_ >= kMinNoiseSamples && solve_noise_ratios(nz_recent_, &ns)) r << ns.lm, ns.la;
-    return r;
-  }
 
  private:
   static constexpr Scalar kNaN = std::numeric_limits<Scalar>::quiet_NaN();
@@ -427,7 +417,6 @@ class VectorCalibrationFilter {
     reset_windows();
     nz_n_ = 0;
     nz_mean_.setZero();
-    nz_recent_.setZero();
   }
   void reset_windows() noexcept {
     window_n_ = 0;
@@ -1070,8 +1059,8 @@ class VectorCalibrationFilter {
     const Scalar un = u.norm();
     if (!(un > Scalar(0))) return;
     u /= un;
-    const Mat3<Scalar> la = lower_solve(ex.l, ex.cov_mag);
-    const Mat3<Scalar> aw = lower_solve(ex.l, Mat3<Scalar>(la.transpose()));
+    const Mat3<Scalar> lc = lower_solve(ex.l, ex.cov_mag);  // L^-1 Sigma_m
+    const Mat3<Scalar> aw = lower_solve(ex.l, Mat3<Scalar>(lc.transpose()));
     const Scalar py = u.dot(y);
     const Scalar p = py * py;
     const Scalar q = y.squaredNorm() - p;
@@ -1080,15 +1069,14 @@ class VectorCalibrationFilter {
     const Scalar tb = Scalar(3) - aw.trace();
     const Scalar tc = hph.trace() - cp;
     NoiseTerms t;
-    t << cp, cp * cp, p, p * cp, q * tb, ta * tb, tc * tb, tb * tb, Scalar(0);
+    t << cp, cp * cp, p, p * cp, q * tb, ta * tb, tc * tb, tb * tb;
     if (!t.allFinite()) return;
     if (nz_n_ < kStatsCountCap) ++nz_n_;
     nz_mean_ += (t - nz_mean_) / static_cast<Scalar>(nz_n_);
-    nz_recent_ += (t - nz_recent_) / static_cast<Scalar>(std::min(nz_n_, kRecentWindow));
   }
   // Running means of c_p, c_p^2, p, p c_p, q tb, ta tb, tc tb, tb^2 (see note_innovation;
-  // ta = tr Aw - 1, tb = tr Bw, tc = tr C - c_p) and a spare.
-  using NoiseTerms = Vec<Scalar, 9>;
+  // ta = tr Aw - 1, tb = tr Bw, tc = tr C - c_p).
+  using NoiseTerms = Vec<Scalar, 8>;
   // lm, la and their relative variances per sample (E-VF-10). lm and lh from the p equations
   // (lh only when the state part varied enough to be told apart; else lm from p - c_p), la from
   // the q equations given them. False when not solvable.
@@ -1301,7 +1289,6 @@ class VectorCalibrationFilter {
   // E-VF-10: running means of the covariance matching over the live samples since the (re)start.
   std::uint32_t nz_n_ = 0;
   NoiseTerms nz_mean_ = NoiseTerms::Zero();
-  NoiseTerms nz_recent_ = NoiseTerms::Zero();  // the same over about kRecentWindow
 };
 
 template <typename Scalar, int kInitCapacity, int kReplayCapacity>

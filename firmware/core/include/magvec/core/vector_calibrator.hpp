@@ -452,11 +452,10 @@ CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity>::add(
   if (r_bn == nullptr) {
     ++counts_.no_attitude;
     // No rate across a missing attitude: the held sample goes on without one.
-    CalibratorAdd r = CalibratorAdd::kRejected;
     if (have_pending_) (void)process(pending_);
     have_pending_ = false;
     have_prev_ = false;
-    return r;
+    return CalibratorAdd::kRejected;
   }
   // Collecting for the noise estimate needs a reference now (the held sample would say so late).
   if (!noise_known_ && !(std::isfinite(s.f_ref_nT) && s.f_ref_nT > Scalar(0)) &&

@@ -53,7 +53,8 @@ class VectorLoopCalibrator {
     core::VfSigmas<double> sigmas{};
     // The calibration's output uncertainty over the survey envelope (E-VF-10).
     core::VfOutputUncertainty<double> output{};
-    double readiness_ratio{0};  // largest parameter 1-sigma over its readiness limit
+    double readiness_ratio{0};  // the output 1-sigma over its readiness limit (ready at 1)
+    double parameter_ratio{0};  // largest parameter 1-sigma over k times its noise (a report)
   };
   Diagnostics diagnostics() const noexcept;
 

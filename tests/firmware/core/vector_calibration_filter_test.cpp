@@ -109,6 +109,7 @@ VfSample<Scalar> cast_sample(const VfSample<double>& s) {
   o.m_nT = s.m_nT.cast<Scalar>();
   o.r_bn = s.r_bn.cast<Scalar>();
   o.omega_n_rad_s = s.omega_n_rad_s.cast<Scalar>();
+  o.attitude_offset_s = static_cast<Scalar>(s.attitude_offset_s);
   o.f_nT = static_cast<Scalar>(s.f_nT);
   o.temperature_degC = static_cast<Scalar>(s.temperature_degC);
   o.interval_s = static_cast<Scalar>(s.interval_s);
@@ -569,6 +570,38 @@ TEST(VectorCalibrationFilter, Recovers10msMagnetometerLag) {
                 f->time_offset_s() * 1e3, f->sigmas().dt_s * 1e3);
     EXPECT_LT(std::abs(f->time_offset_s() - tr.tau_s), 1e-3);
   }
+}
+
+// The caller may hand over the attitude already taken at t - a (interpolated from the INS samples,
+// as the CLI runner does with the filter's current offset): VfSample::attitude_offset_s = a, and
+// the filter rotates only by dt - a. A 20 ms lag with a = 15 ms applied must still come out at 20
+// ms (5 ms if the filter ignored a, and 15 ms if it rotated by its whole dt on top).
+TEST(VectorCalibrationFilter, AttitudeAlreadyMovedByTheCallerLeavesOnlyTheRestToTheRate) {
+  Truth tr;
+  tr.tau_s = 0.020;
+  const double applied_s = 0.015;
+  const SimOptions o = noisy_manoeuvre(30);
+  std::mt19937_64 rng(61);
+  std::vector<SimSample> data = simulate_manoeuvre(tr, o, rng);
+  std::mt19937_64 noise(62);
+  for (std::size_t i = 0; i < data.size(); ++i) {
+    const double t = static_cast<double>(i) / o.rate_hz;
+    data[i].in.r_bn = with_ins_noise(manoeuvre(t - applied_s), o.att_sigma_rad, noise);
+    data[i].in.omega_n_rad_s = manoeuvre_rate_n(t - applied_s);
+    data[i].in.attitude_offset_s = applied_s;
+  }
+  auto f = run<double>(data, VfConfig<double>{});
+  ASSERT_TRUE(f->initialised());
+  std::printf("time offset %.4f ms +- %.4f ms (truth 20 ms, 15 ms applied by the caller)\n",
+              f->time_offset_s() * 1e3, f->sigmas().dt_s * 1e3);
+  EXPECT_LT(std::abs(f->time_offset_s() - tr.tau_s), 4 * f->sigmas().dt_s);
+  EXPECT_LT(std::abs(f->time_offset_s() - tr.tau_s), 1e-4);
+  // A non-finite offset is bad input, counted, the state untouched.
+  VfSample<double> bad = data.back().in;
+  bad.attitude_offset_s = std::numeric_limits<double>::quiet_NaN();
+  const double before = f->time_offset_s();
+  EXPECT_EQ(f->update(bad), VfStatus::kRejectedNonFinite);
+  EXPECT_EQ(f->time_offset_s(), before);
 }
 
 // ---- 5. float32 against double --------------------------------------------------------------

@@ -46,8 +46,12 @@ namespace magvec::core {
 template <typename Scalar>
 struct VfSample {
   Vec3<Scalar> m_nT = Vec3<Scalar>::Zero();           // raw reading
-  Mat3<Scalar> r_bn = Mat3<Scalar>::Identity();       // INS attitude at the sample's time stamp
+  Mat3<Scalar> r_bn = Mat3<Scalar>::Identity();       // INS attitude at stamp - attitude_offset_s
   Vec3<Scalar> omega_n_rad_s = Vec3<Scalar>::Zero();  // rotation rate of R_bn^T, n-frame axes
+  // The time offset the caller already applied to r_bn: the INS attitude at the sample's stamp
+  // minus this (interpolated; 0: at the stamp). The model rotates only by the rest, state - this,
+  // so the rate's noise is not multiplied by the whole offset (E-VF-5).
+  Scalar attitude_offset_s{0};
   Scalar f_nT = std::numeric_limits<Scalar>::quiet_NaN();  // scalar reference (NaN: none)
   Scalar temperature_degC = std::numeric_limits<Scalar>::quiet_NaN();  // NaN: none
   Scalar interval_s = std::numeric_limits<Scalar>::quiet_NaN();        // since the previous sample
@@ -346,11 +350,12 @@ class VectorCalibrationFilter {
 
   // A sample in the filter's units.
   struct Prepared {
-    Vec3<Scalar> m;      // normalised reading
-    Mat3<Scalar> r;      // R_bn
-    Vec3<Scalar> omega;  // rad/s, n frame
-    Scalar f{0};         // normalised reference (NaN: none)
-    Scalar dtemp{0};     // T - T0 (0 without temperatures)
+    Vec3<Scalar> m;          // normalised reading
+    Mat3<Scalar> r;          // R_bn
+    Vec3<Scalar> omega;      // rad/s, n frame
+    Scalar att_offset_s{0};  // offset already applied to r (VfSample::attitude_offset_s)
+    Scalar f{0};             // normalised reference (NaN: none)
+    Scalar dtemp{0};         // T - T0 (0 without temperatures)
   };
 
   Scalar scale_or_one() const noexcept { return scale_ > Scalar(0) ? scale_ : Scalar(1); }
@@ -378,11 +383,12 @@ class VectorCalibrationFilter {
   }
 
   Prepared prepare(const Vec3<Scalar>& m_nT, const Mat3<Scalar>& r, const Vec3<Scalar>& omega,
-                   Scalar f_nT, Scalar t_degC) const noexcept {
+                   Scalar att_offset_s, Scalar f_nT, Scalar t_degC) const noexcept {
     Prepared p;
     p.m = m_nT / scale_;
     p.r = r;
     p.omega = omega;
+    p.att_offset_s = att_offset_s;
     p.f = f_nT / scale_;
     p.dtemp = std::isfinite(t_degC) && std::isfinite(t0_) ? t_degC - t0_ : Scalar(0);
     return p;
@@ -609,6 +615,7 @@ class VectorCalibrationFilter {
       return VfStatus::kCollecting;
     const std::size_t i = static_cast<std::size_t>(n_kept_);
     kept_omega_.col(n_kept_) = in.omega_n_rad_s;
+    kept_att_offset_(n_kept_) = in.attitude_offset_s;
     kept_t_(n_kept_) = last_t_;
     kept_has_f_[i] = std::isfinite(f_nT);
     kept_seq_[i] = seq;
@@ -634,6 +641,7 @@ class VectorCalibrationFilter {
       r[ju] = s.r_bn();
       f[ju] = s.f;
       kept_omega_.col(j) = kept_omega_.col(i);
+      kept_att_offset_(j) = kept_att_offset_(i);
       kept_t_(j) = kept_t_(i);
       kept_has_f_[ju] = kept_has_f_[static_cast<std::size_t>(i)];
       kept_seq_[ju] = kept_seq_[static_cast<std::size_t>(i)];
@@ -660,6 +668,7 @@ class VectorCalibrationFilter {
       r.m_nT = in.m_nT;
       r.q = Quat<Scalar>(in.r_bn);
       r.omega = in.omega_n_rad_s;
+      r.att_offset_s = in.attitude_offset_s;
       r.f_nT = f_nT;
       r.temperature_degC = last_t_;
       r.seq = seq;
@@ -769,8 +778,8 @@ class VectorCalibrationFilter {
       for (int j = 0; j < replay_n_; ++j) {
         const ReplaySample& r = replay_[static_cast<std::size_t>(
             (replay_head_ + kReplayCapacity - replay_n_ + j) % std::max(kReplayCapacity, 1))];
-        const Prepared pr =
-            prepare(r.m_nT, r.q.toRotationMatrix(), r.omega, r.f_nT, r.temperature_degC);
+        const Prepared pr = prepare(r.m_nT, r.q.toRotationMatrix(), r.omega, r.att_offset_s, r.f_nT,
+                                    r.temperature_degC);
         if (std::isfinite(pr.f)) reference_update(pr.f, false);
         // Outliers: the kept samples have the batch fit's screen, these the gate (the pass starts
         // near the solution: after the kept samples' passes, or after the live samples).
@@ -782,7 +791,7 @@ class VectorCalibrationFilter {
   }
   Prepared kept(int i) const noexcept {
     const StoredSample<Scalar>& s = batch_.store()[static_cast<std::size_t>(i)];
-    return prepare(s.raw(), s.r_bn(), kept_omega_.col(i),
+    return prepare(s.raw(), s.r_bn(), kept_omega_.col(i), kept_att_offset_(i),
                    kept_has_f_[static_cast<std::size_t>(i)] ? s.f : kNaN, kept_t_(i));
   }
   // Mean squared whitened residual per scalar observation over the kept samples at the current
@@ -880,7 +889,8 @@ class VectorCalibrationFilter {
       wm(kWRow[static_cast<std::size_t>(k)], kWCol[static_cast<std::size_t>(k)]) = xf(kW0 + k);
     const Mat3<Scalar> rmt =
         (lin_at_nominal_ ? rm_nom_ : rm_current()).toRotationMatrix().transpose();
-    const Scalar tau = xf(kDt);
+    // Only the part of the offset the caller did not apply to r (E-VF-5).
+    const Scalar tau = xf(kDt) - p.att_offset_s;
     const Mat3<Scalar> e = exp_so3(Vec3<Scalar>(-tau * p.omega));
     const Mat3<Scalar> et_r = e * p.r.transpose();  // E R^T
     const Mat3<Scalar> mm = et_r * rmt;             // M = E R^T Rm^T
@@ -1250,6 +1260,7 @@ class VectorCalibrationFilter {
   int n_kept_ = 0;
   Scalar min_rotation_deg_{2};  // attitude step between kept samples (grows after refusals)
   Mat<Scalar, 3, kInitCapacity> kept_omega_ = Mat<Scalar, 3, kInitCapacity>::Zero();
+  Vec<Scalar, kInitCapacity> kept_att_offset_ = Vec<Scalar, kInitCapacity>::Zero();
   Vec<Scalar, kInitCapacity> kept_t_ = Vec<Scalar, kInitCapacity>::Zero();
   std::array<bool, static_cast<std::size_t>(kInitCapacity)> kept_has_f_{};
   std::array<std::uint32_t, static_cast<std::size_t>(kInitCapacity)> kept_seq_{};
@@ -1257,6 +1268,7 @@ class VectorCalibrationFilter {
     Vec3<Scalar> m_nT = Vec3<Scalar>::Zero();
     Quat<Scalar> q = Quat<Scalar>::Identity();  // R_bn (4 numbers instead of 9)
     Vec3<Scalar> omega = Vec3<Scalar>::Zero();
+    Scalar att_offset_s{0};      // VfSample::attitude_offset_s
     Scalar f_nT{0};              // NaN: none
     Scalar temperature_degC{0};  // the last one seen at the time
     std::uint32_t seq = 0;       // counters_.samples at the time
@@ -1327,7 +1339,8 @@ template <typename Scalar, int kInitCapacity, int kReplayCapacity>
 VfStatus VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>::update(
     const VfSample<Scalar>& in) noexcept {
   ++counters_.samples;
-  if (!in.m_nT.allFinite() || !in.r_bn.allFinite() || !in.omega_n_rad_s.allFinite()) {
+  if (!in.m_nT.allFinite() || !in.r_bn.allFinite() || !in.omega_n_rad_s.allFinite() ||
+      !std::isfinite(in.attitude_offset_s)) {
     ++counters_.rejected_nonfinite;
     return VfStatus::kRejectedNonFinite;
   }
@@ -1350,7 +1363,7 @@ VfStatus VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>::update
   note_tilt(in.r_bn);
   if (pending_start_) start_stored(in, f);
   if (!running_) return collect(in, f);
-  Prepared p = prepare(in.m_nT, in.r_bn, in.omega_n_rad_s, f, last_t_);
+  Prepared p = prepare(in.m_nT, in.r_bn, in.omega_n_rad_s, in.attitude_offset_s, f, last_t_);
   const Scalar dt = std::isfinite(in.interval_s) && in.interval_s >= Scalar(0)
                         ? in.interval_s
                         : cfg_.sample_interval_s;

@@ -193,6 +193,14 @@ void run_session(const RunOptions& o, drivers::sim::Simulator& sim,
     std::cout << ", validation intensity rms " << lp.last_validation_rms_nT() << " nT";
   std::cout << "; calibrator used " << h.cal_used << ", gated " << h.cal_gated << ", rejected "
             << h.cal_rejected << "\n";
+  const auto& pipe = session->core().pipeline();
+  std::cout << "  magnetometer-INS time offset of the pairing: "
+            << 1e-3 * static_cast<double>(pipe.time_offset_us()) << " ms ("
+            << (pipe.config().adopt_calibration_time_offset
+                    ? std::to_string(pipe.counters().time_offset_steps) +
+                          " steps adopted from the in-loop calibration"
+                    : std::string("given, not adopted"))
+            << ")\n";
   describe(cal, std::cout);
   std::cout << "  injected: ";
   if (rc.link == drivers::sim::MagLink::kSpi) {
@@ -232,6 +240,7 @@ void run(const RunOptions& o) {
   hc.horizon_us = o.fusion_horizon_us;
   if (std::isfinite(o.time_offset_s)) {
     hc.time_offset_us = host::hil::offset_us_from_s(o.time_offset_s);
+    hc.adopt_calibration_time_offset = false;  // known: an in-loop calibration's is not taken
   } else if (!o.calibration.empty()) {
     hc.time_offset_us =
         host::hil::offset_us_from_s(read_calibration_file(o.calibration).time_offset_s);

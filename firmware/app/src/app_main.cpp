@@ -96,7 +96,9 @@ constexpr std::size_t kAlignCapacity = 128;
 // The vector filter's replay store (E-VF-1): 128 samples (6.5 KiB in float) instead of the
 // host's 512; its start-up set as on the host.
 constexpr int kVectorReplay = 128;
-using Calibrator = core::VectorCalibrator<Scalar, 64, kVectorReplay>;
+// The calibrator's hold ring: 2 x (20 ms rate half span + an offset up to 140 ms) at 50 Hz.
+constexpr int kVectorHold = 16;
+using Calibrator = core::VectorCalibrator<Scalar, 64, kVectorReplay, kVectorHold>;
 #else
 using Calibrator = core::EkfCalibrator<Scalar, kAlignCapacity>;
 #endif

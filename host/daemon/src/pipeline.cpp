@@ -158,6 +158,7 @@ class PipelineImpl final : public Pipeline {
   void override_time_offset_s(double offset_s) noexcept override {
     if (!std::isfinite(offset_s)) return;
     core_.set_time_offset_us(hil::offset_us_from_s(offset_s));
+    core_.set_adopt_calibration_time_offset(false);
     offset_fixed_ = true;
   }
   double time_offset_s() const noexcept override {
@@ -298,10 +299,11 @@ class PipelineImpl final : public Pipeline {
 
 std::unique_ptr<Pipeline> Pipeline::create(const Config& config, hal::RecordSink& sink) {
   const CalibrationConfig& cc = config.calibration;
-  const hil::HilConfig hc = hil_config(config);
+  hil::HilConfig hc = hil_config(config);
   const double mag_rate = config.magnetometer.rate_hz;
   const double ins_rate = config.ins.rate_hz;
   const bool fixed = std::isfinite(config.ins.time_offset_s);
+  hc.adopt_calibration_time_offset = !fixed;
   if (!hil::is_calibrator_mode(cc.mode))
     throw ConfigError("calibration.mode: unknown calibrator '" + cc.mode + "'");
   hil::CalibratorSpec spec;

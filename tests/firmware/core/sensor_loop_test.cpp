@@ -26,6 +26,8 @@ struct FakeCalibrator {
   // The candidate's own 1-sigma of |h| and E/N/U from its covariance (NaN: not given).
   float cal_sigma_f_nT{std::numeric_limits<float>::quiet_NaN()};
   float cal_sigma_enu_nT{std::numeric_limits<float>::quiet_NaN()};
+  // The time offset the "solve" found, relative to the pairing it was fed (NaN: none).
+  float time_offset_s{std::numeric_limits<float>::quiet_NaN()};
   int begins{0};
   void begin() noexcept {
     seen = 0;
@@ -45,6 +47,7 @@ struct FakeCalibrator {
     r.mag_noise_nT = mag_noise_nT;
     r.calibration_sigma_f_nT = cal_sigma_f_nT;
     r.calibration_sigma_enu_nT = cal_sigma_enu_nT;
+    r.time_offset_correction_s = time_offset_s;
     return r;
   }
 };
@@ -155,6 +158,58 @@ TEST(SensorLoop, CalibrationIdsAreNeverReusedAfterARevert) {
   EXPECT_EQ(loop.cal_id(), 1u);
   ASSERT_EQ(calibrate(), CalState::kApplied);
   EXPECT_EQ(loop.cal_id(), 3u);  // not 2 again
+}
+
+// A candidate that found a time offset in its data holds only with its samples paired that way:
+// the loop asks the pipeline for the step once, when the validation starts, and for the step back
+// when the validation refuses the candidate; a solver refusal asks for nothing.
+TEST(SensorLoop, ACandidatesTimeOffsetIsAskedOfThePipelineAndTakenBackWhenRefused) {
+  const auto run = [](FakeCalibrator& cal, std::int64_t* first_step, std::int64_t* total,
+                      int* asks) {
+    LoopConfig<double> cfg;
+    cfg.noise_nT = 0.3;
+    SensorLoop<double, FakeCalibrator> loop(cal, cfg);
+    Feed feed;
+    Mat3<double> r;
+    loop.start_calibration();
+    *first_step = 0;
+    *total = 0;
+    *asks = 0;
+    for (int i = 0; i < 400; ++i) {
+      (void)loop.process(feed.next(truth_model(), &r), &r);
+      const std::int64_t d = loop.take_time_offset_step_us();
+      if (d != 0) {
+        if (*asks == 0) *first_step = d;
+        *total += d;
+        ++*asks;
+      }
+      EXPECT_EQ(loop.take_time_offset_step_us(), 0);  // taken once
+    }
+    return loop.state();
+  };
+  std::int64_t first = 0, total = 0;
+  int asks = 0;
+  FakeCalibrator good;
+  good.result = truth_model();
+  good.time_offset_s = -0.0095f;
+  EXPECT_EQ(run(good, &first, &total, &asks), CalState::kApplied);
+  EXPECT_EQ(first, -9500);
+  EXPECT_EQ(total, -9500);
+  EXPECT_EQ(asks, 1);
+  FakeCalibrator bad = good;
+  bad.result.o += Vec3<double>(300, 0, 0);  // refused by the held-out check
+  EXPECT_EQ(run(bad, &first, &total, &asks), CalState::kFailed);
+  EXPECT_EQ(first, -9500);
+  EXPECT_EQ(total, 0);
+  EXPECT_EQ(asks, 2);
+  FakeCalibrator refused = good;
+  refused.refuse = true;
+  EXPECT_EQ(run(refused, &first, &total, &asks), CalState::kFailed);
+  EXPECT_EQ(asks, 0);
+  FakeCalibrator none;
+  none.result = truth_model();  // no offset (NaN)
+  EXPECT_EQ(run(none, &first, &total, &asks), CalState::kApplied);
+  EXPECT_EQ(asks, 0);
 }
 
 TEST(SensorLoop, ReportsSolverRefusalWithItsCode) {

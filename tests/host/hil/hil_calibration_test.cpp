@@ -18,6 +18,7 @@
 
 #include "enu_floor.hpp"
 #include "magvec/core/batch_li_calibrator.hpp"
+#include "magvec/core/vector_calibrator.hpp"
 #include "magvec/host/hil/hil_session.hpp"
 #include "support/alloc_counter.hpp"
 
@@ -44,12 +45,16 @@ struct Rms {
 
 // Scores every calibrated record after the manoeuvre against the simulator's truth at the
 // record's own time (records leave the loop when their sample is processed, after the INS
-// samples that bracket it arrived). No heap.
+// samples that bracket it arrived). No heap. The floor's interpolation fraction is that of the
+// INS epochs around the attitude the pipeline paired (its time offset, and the part of the CAN
+// latency it was not told about, move it off the sample's time).
+template <typename SessionT>
 class ScoringSink final : public hal::RecordSink {
  public:
-  ScoringSink(const ScenarioConfig& sc, const SimRigConfig& rc, double t_from_s)
-      : sc_(sc), rc_(rc), truth_(sc.truth), t_from_s_(t_from_s) {}
-  void attach(Session* s) noexcept { session_ = s; }
+  ScoringSink(const ScenarioConfig& sc, const SimRigConfig& rc, double t_from_s,
+              double unknown_latency_s = 0)
+      : sc_(sc), rc_(rc), truth_(sc.truth), t_from_s_(t_from_s), unknown_s_(unknown_latency_s) {}
+  void attach(SessionT* s) noexcept { session_ = s; }
 
   hal::Status emit(const hal::OutputRecord& r) noexcept override {
     ++records;
@@ -74,9 +79,11 @@ class ScoringSink final : public hal::RecordSink {
       ++without_interpolated_attitude;
       return hal::Status::kOk;
     }
+    const double offset_s =
+        1e-6 * static_cast<double>(session_->core().pipeline().time_offset_us());
     enu.add(core::Vec3<double>(r.h_n_nT[0], r.h_n_nT[1], r.h_n_nT[2]), sim.true_attitude_at(t_s),
             h_n_true, sc_.truth, sc_.mag_noise_nT, sc_.ins_noise_deg,
-            test::epoch_fraction(t_s + sc_.ins_latency_s, rc_.ins.rate_hz));
+            test::epoch_fraction(t_s + sc_.ins_latency_s - offset_s - unknown_s_, rc_.ins.rate_hz));
     return hal::Status::kOk;
   }
 
@@ -90,8 +97,9 @@ class ScoringSink final : public hal::RecordSink {
   SimRigConfig rc_;
   core::Compensator<double> truth_;
   double t_from_s_;
+  double unknown_s_;
   std::uint64_t last_t_us_{0};
-  Session* session_{nullptr};
+  SessionT* session_{nullptr};
 };
 
 TEST(HilCalibration, TenMinuteSurveyCalibratesInTheLoopToTheNoiseFloors) {
@@ -116,7 +124,7 @@ TEST(HilCalibration, TenMinuteSurveyCalibratesInTheLoopToTheNoiseFloors) {
   lc.batch.mag_noise_nT = sc.mag_noise_nT;
   lc.batch.attitude_noise_deg = sc.ins_noise_deg;
   auto cal = std::make_unique<LiCal>(lc);
-  ScoringSink sink(sc, rc, sc.survey.manoeuvre_s + 5.0);
+  ScoringSink<Session> sink(sc, rc, sc.survey.manoeuvre_s + 5.0);
   auto hil = std::make_unique<Session>(sim, rc, *cal, sink, hc);
   sink.attach(hil.get());
   ASSERT_EQ(hil->init(), hal::Status::kOk);
@@ -193,6 +201,74 @@ TEST(HilCalibration, TenMinuteSurveyCalibratesInTheLoopToTheNoiseFloors) {
   // The calibrator saw attitude-less samples during the gap as rejections, never as data.
   EXPECT_GT(cal->counts().rejected, 0u);
   EXPECT_EQ(health.cal_rejected, cal->counts().rejected);
+}
+
+// The INS on a real platform is late by more than its configured transport latency, by an amount
+// nobody measured. Here the CAN frames arrive 10 ms after their epoch and the loop is told 0.5 ms
+// (the default): every attitude it pairs is 9.5 ms old. The vector-ekf calibrator, told neither
+// noise nor latency, finds the offset (its start-up fit regresses the lag out before estimating
+// the noise, and its filter takes each attitude at t - tau from the INS samples, E-VF-5); the
+// pipeline pairs the held-out samples and the records at that offset. Scored against the
+// simulator's true attitude and field: E/N/U within 1.05x of the floor after the manoeuvre
+// (measured 1.013-1.020; without the start-up regression of the lag 1.035-1.053, the offset's
+// 1-sigma 0.30 ms instead of 0.023). Before, the filter's offset came out at -9.2 +- 0.3 ms and
+// the held-out vector check refused the candidate (vector_validation_failed, `magvec run` seed
+// 3); with the noise given, it was applied with the records still paired 9.5 ms off.
+TEST(HilCalibration, VectorEkfFindsAnUnknownInsLatencyAndThePipelineAdoptsIt) {
+  using VecCal = core::VectorCalibrator<double>;
+  using VecSession = HilSession<VecCal>;
+  ScenarioConfig sc = drivers::sim::scenario_survey();  // 200 Hz, 0.3 nT, 0.015 deg
+  sc.num_samples = static_cast<std::uint32_t>(180.0 * sc.rate_hz);
+  Simulator sim(sc, 2031);
+  SimRigConfig rc;
+  rc.link = drivers::sim::MagLink::kSpi;
+  rc.adc.transfer.nT_per_volt = {1e5, 1e5, 1e5};
+  rc.ins.can_latency_us = 10'000;
+  HilConfig hc;  // ins_latency_comp_us 500: 9.5 ms unknown; no noise figures
+  const double unknown_s = 1e-6 * (rc.ins.can_latency_us - hc.ins_latency_comp_us);
+  auto cal = std::make_unique<VecCal>();
+  ScoringSink<VecSession> sink(sc, rc, sc.survey.manoeuvre_s + 5.0, unknown_s);
+  auto hil = std::make_unique<VecSession>(sim, rc, *cal, sink, hc);
+  sink.attach(hil.get());
+  ASSERT_EQ(hil->init(), hal::Status::kOk);
+  hil->run();
+  const auto& loop = hil->loop();
+  ASSERT_EQ(loop.state(), core::CalState::kApplied)
+      << "failure " << core::cal_failure_name(loop.failure()) << " code "
+      << static_cast<int>(loop.solver_code());
+  const double offset_s = 1e-6 * static_cast<double>(hil->core().pipeline().time_offset_us());
+  const double sigma_s = cal->filter().sigmas().dt_s;
+  std::printf("pipeline time offset %.3f ms (filter %.4f +- %.4f ms), truth %.3f ms\n",
+              offset_s * 1e3, cal->filter().time_offset_s() * 1e3, sigma_s * 1e3, -unknown_s * 1e3);
+  // The attitude is older than the reading: magnetometer minus INS is negative.
+  EXPECT_NEAR(cal->filter().time_offset_s(), -unknown_s, std::max(4 * sigma_s, 1e-4));
+  EXPECT_EQ(hil->core().pipeline().counters().time_offset_steps, 1u);
+  ASSERT_GT(sink.enu.n, 20000u);
+  const char* names[3] = {"E", "N", "U"};
+  for (int k = 0; k < 3; ++k) {
+    std::printf("%s: RMS error %.3f nT, floor %.3f nT, ratio %.3f\n", names[k], sink.enu.error(k),
+                sink.enu.floor(k), sink.enu.error(k) / sink.enu.floor(k));
+    EXPECT_LE(sink.enu.error(k), 1.05 * sink.enu.floor(k)) << names[k];
+  }
+  std::printf("F: RMS error %.4f nT, floor %.4f nT\n", sink.f_err.value(), sink.f_floor.value());
+  EXPECT_LE(sink.f_err.value(), 1.1 * sink.f_floor.value());
+
+  // An offset configured as known (magvecd ins.time_offset_s, magvec run --time-offset-s) stays.
+  Simulator sim2(sc, 2031);
+  hc.time_offset_us = -9'500;
+  hc.adopt_calibration_time_offset = false;
+  auto cal2 = std::make_unique<VecCal>();
+  ScoringSink<VecSession> sink2(sc, rc, sc.survey.manoeuvre_s + 5.0, unknown_s);
+  auto hil2 = std::make_unique<VecSession>(sim2, rc, *cal2, sink2, hc);
+  sink2.attach(hil2.get());
+  ASSERT_EQ(hil2->init(), hal::Status::kOk);
+  hil2->run();
+  EXPECT_EQ(hil2->loop().state(), core::CalState::kApplied);
+  EXPECT_EQ(hil2->core().pipeline().time_offset_us(), -9'500);
+  EXPECT_EQ(hil2->core().pipeline().counters().time_offset_steps, 0u);
+  // Fed at the right pairing, the filter finds nothing left.
+  EXPECT_NEAR(cal2->filter().time_offset_s(), 0.0,
+              std::max(4 * cal2->filter().sigmas().dt_s, 1e-4));
 }
 
 }  // namespace

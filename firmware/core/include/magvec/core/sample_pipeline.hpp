@@ -61,7 +61,10 @@ struct PipelineConfig {
   AttitudeBufferConfig buffer{};
   std::uint32_t ins_latency_us{500};  // subtracted from INS receive times
   std::int64_t time_offset_us{0};     // magnetometer stamp - INS time of its attitude
-  std::uint32_t horizon_us{50'000};   // longest wait for bracketing INS samples
+  // Move time_offset_us by the step a calibration asks for (SensorLoop::take_time_offset_step_us:
+  // the offset its candidate found in the data); off when the offset is configured as known.
+  bool adopt_calibration_time_offset{true};
+  std::uint32_t horizon_us{50'000};  // longest wait for bracketing INS samples
   // Expected cadences (missing/gap/jump counters), whole microseconds: integer arithmetic keeps
   // soft-float double off the M4F's per-sample path.
   std::uint32_t mag_period_us{5'000};
@@ -87,12 +90,13 @@ struct PipelineCounters {
   std::uint64_t att_reordered{0};
   std::uint64_t att_rejected{0};
   std::uint64_t records{0};
-  std::uint64_t horizon_expired{0};  // processed without a bracketing INS sample
-  std::uint64_t extrapolated{0};     // records flagged kOutAttExtrapolated
-  std::uint64_t queue_full{0};       // processed early because the queue was full
-  std::uint64_t max_queued{0};       // deepest the queue has been
-  std::uint64_t spikes{0};           // records flagged kOutSpike
-  std::uint64_t spike_screened{0};   // samples the spike screen judged (had both neighbours)
+  std::uint64_t horizon_expired{0};    // processed without a bracketing INS sample
+  std::uint64_t extrapolated{0};       // records flagged kOutAttExtrapolated
+  std::uint64_t queue_full{0};         // processed early because the queue was full
+  std::uint64_t max_queued{0};         // deepest the queue has been
+  std::uint64_t spikes{0};             // records flagged kOutSpike
+  std::uint64_t spike_screened{0};     // samples the spike screen judged (had both neighbours)
+  std::uint64_t time_offset_steps{0};  // time offset moved for a calibration (adopted or undone)
 };
 
 template <typename Scalar, typename Calibrator, std::size_t BufferCapacity = 64,
@@ -191,6 +195,10 @@ class SamplePipeline {
   // Changes the magnetometer<->INS time offset (e.g. with a new calibration).
   void set_time_offset_us(std::int64_t offset_us) noexcept { config_.time_offset_us = offset_us; }
   std::int64_t time_offset_us() const noexcept { return config_.time_offset_us; }
+  // Off: the offset is known (configured or overridden); a calibration's own is not adopted.
+  void set_adopt_calibration_time_offset(bool on) noexcept {
+    config_.adopt_calibration_time_offset = on;
+  }
 
   std::size_t pending() const noexcept { return count_; }
   Loop& loop() noexcept { return loop_; }
@@ -301,6 +309,12 @@ class SamplePipeline {
     }
     ++counters_.records;
     emit(rec);
+    // From the next sample on, paired as the candidate was fitted (or back, when refused).
+    const std::int64_t step = loop_.take_time_offset_step_us();
+    if (step != 0 && config_.adopt_calibration_time_offset) {
+      config_.time_offset_us += step;
+      ++counters_.time_offset_steps;
+    }
   }
 
   PipelineConfig<Scalar> config_;

@@ -130,6 +130,11 @@ struct CalibratorSolve {
   // combined with these.
   float calibration_sigma_f_nT{std::numeric_limits<float>::quiet_NaN()};
   float calibration_sigma_enu_nT{std::numeric_limits<float>::quiet_NaN()};
+  // The magnetometer-INS time offset the solve found in its data, relative to the attitudes it was
+  // given (positive: the magnetometer lags; NaN or 0: none). The candidate holds only with its
+  // samples paired that way, so the pipeline moves its offset by this for the held-out samples
+  // and keeps it when the candidate is applied (take_time_offset_step_us()).
+  float time_offset_correction_s{std::numeric_limits<float>::quiet_NaN()};
 };
 
 template <typename Scalar>
@@ -261,6 +266,14 @@ class SensorLoop {
     solver_code_ = 0;
   }
   CalState state() const noexcept { return state_; }
+  // The step the loop asks of the pipeline's magnetometer-INS time offset since the last call
+  // (0: none), in microseconds: + the candidate's correction when its validation starts, - it
+  // again when the validation refuses the candidate (CalibratorSolve::time_offset_correction_s).
+  std::int64_t take_time_offset_step_us() noexcept {
+    const std::int64_t d = offset_step_us_;
+    offset_step_us_ = 0;
+    return d;
+  }
   CalFailure failure() const noexcept { return failure_; }
   std::uint8_t solver_code() const noexcept { return solver_code_; }
   Scalar progress() const noexcept {
@@ -400,6 +413,11 @@ class SensorLoop {
         std::isfinite(config_.noise_nT) ? config_.noise_nT : static_cast<Scalar>(r.mag_noise_nT);
     candidate_cal_sigma_f_ = static_cast<Scalar>(r.calibration_sigma_f_nT);
     candidate_cal_sigma_enu_ = static_cast<Scalar>(r.calibration_sigma_enu_nT);
+    // Whole microseconds (float holds them exactly to 16 s).
+    const float corr_us = r.time_offset_correction_s * 1e6F;
+    candidate_offset_step_us_ =
+        std::isfinite(corr_us) && std::fabs(corr_us) < 1e7F ? std::lround(corr_us) : 0;
+    offset_step_us_ += candidate_offset_step_us_;
     validation_count_ = 0;
     sum_sq_candidate_ = 0;
     missing_reference_ = 0;
@@ -518,6 +536,8 @@ class SensorLoop {
   }
 
   void fail(CalFailure why, std::uint8_t code) noexcept {
+    if (state_ == CalState::kValidating) offset_step_us_ -= candidate_offset_step_us_;
+    candidate_offset_step_us_ = 0;
     failure_ = why;
     solver_code_ = code;
     state_ = CalState::kFailed;
@@ -553,8 +573,10 @@ class SensorLoop {
   Scalar active_sigma_f_{config_.noise_nT};
   Scalar active_sigma_enu_{kNaN};
   Scalar candidate_noise_{config_.noise_nT};
-  Scalar candidate_cal_sigma_f_{kNaN};    // CalibratorSolve::calibration_sigma_f_nT
-  Scalar candidate_cal_sigma_enu_{kNaN};  // CalibratorSolve::calibration_sigma_enu_nT
+  Scalar candidate_cal_sigma_f_{kNaN};        // CalibratorSolve::calibration_sigma_f_nT
+  Scalar candidate_cal_sigma_enu_{kNaN};      // CalibratorSolve::calibration_sigma_enu_nT
+  std::int64_t candidate_offset_step_us_{0};  // CalibratorSolve::time_offset_correction_s
+  std::int64_t offset_step_us_{0};            // not yet taken by the pipeline
   Scalar sum_f_{0};
   std::uint32_t vector_count_{0};
   Vec3<Scalar> vector_ref_ = Vec3<Scalar>::Zero();

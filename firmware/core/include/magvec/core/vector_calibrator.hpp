@@ -6,15 +6,22 @@
 // E-VF-5), the interval since the previous sample (process noise) and the temperature (E-VF-6).
 // The adapter therefore takes the loop's whole MagSample (add(const MagSample&, const Mat3*), the
 // extended contract): the interval from successive time stamps, the temperature from
-// MagSample::temperature_degC (NaN: the filter holds the last one seen), and the rate from the
-// attitudes of the samples before and after (rate_n_from_attitudes over that span; zero when the
-// span exceeds max_rate_span_s, an attitude gap across which a rate means nothing, or a neighbour
-// is missing). DECISION: a sample is therefore processed one sample late (add() returns the
-// previous sample's outcome; the first add() after begin() returns kUsed). A rate from the
-// sample's own attitude and its predecessor carries the sample's own attitude noise, which its
-// residual carries too: the time offset regressed on it is biased by about sa^2 / (dt |Omega|^2)
-// (measured 0.4 ms at 0.05 deg and 100 Hz, 12 sigma, and 4 ms after a start from data). The
-// neighbours' rate is independent of the sample's attitude noise.
+// MagSample::temperature_degC (NaN: the filter holds the last one seen).
+//
+// Attitude at t - tau (DECISION, E-VF-5). The samples wait in a ring of HoldCapacity (the recent
+// ones stay as history) until the ring reaches rate_half_span_s past t - tau, tau the filter's
+// current time offset; the filter is then given the attitude at t - tau interpolated (slerp)
+// between the ring's attitudes, with VfSample::attitude_offset_s = tau, and the rate at t - tau
+// from the attitudes rate_half_span_s either side. Rotating the sample's own attitude by tau times
+// a differenced rate instead multiplies the rate's noise by tau: with an unknown 10 ms INS latency
+// on a 200 Hz survey the noise estimate grew from 9.7 to 112 nT per E/N/U component, the offset
+// came out at -9.2 +- 0.3 ms and validation refused the candidate. The half span keeps the rate's
+// attitudes clear of the INS samples interpolated at t - tau (independent noise; a rate from the
+// neighbours biased the offset by sa^2 / (dt |Omega|^2), 4 ms after a start from data) and makes
+// it 4x less noisy than the neighbours'. Where the ring does not reach (its start, a gap, an
+// offset beyond it) the sample's own attitude is used with the rate from its neighbours, as
+// before. add() returns the outcome of the sample it processed (kUsed when it processed none); a
+// sample is processed rate_half_span_s - tau late, or when the ring is full.
 //
 // Noise (DECISION). The filter is configured with the magnetometer and attitude noise and has no
 // estimator of its own; a figure far too small makes it refuse the data (its NIS divergence test),
@@ -59,9 +66,11 @@
 //
 // solve(): the filter's current model (W, the offset at the last temperature seen, Rm) as the
 // candidate, aligned = true, with the noise figures of noise() (estimated, or given).
-// The time offset and the temperature coefficients the filter estimates are not part of the
-// SensorModel a candidate carries (the pipeline's time offset is configured; the records apply no
-// temperature term): they are diagnostics here (filter()).
+// The time offset the filter estimates goes with the candidate as
+// CalibratorSolve::time_offset_correction_s (relative to the attitudes the loop gave it): the
+// pipeline pairs the held-out samples and, once applied, the records at its offset plus that. The
+// temperature coefficients are not part of the SensorModel a candidate carries (the records apply
+// no temperature term): a diagnostic here (filter()).
 //
 // After a solve (DECISION). solve() only reads the filter, so a copy solved on another thread
 // (magvecd's worker) gives the same candidate. The loop stops feeding the calibrator once it
@@ -81,6 +90,7 @@
 #include <cstdint>
 #include <limits>
 
+#include "magvec/core/attitude_buffer.hpp"
 #include "magvec/core/batch_calibrator.hpp"
 #include "magvec/core/frames.hpp"
 #include "magvec/core/sensor_loop.hpp"
@@ -133,6 +143,8 @@ struct VectorCalibratorConfig {
   int refresh_every{64};
   // Longest interval over which a rate is taken from two attitudes.
   Scalar max_rate_span_s{Scalar(0.5)};
+  // Half the span of the rate at t - tau (see the top): at least two INS periods.
+  Scalar rate_half_span_s{Scalar(0.02)};
 };
 
 struct VectorCalibratorCounts {
@@ -147,9 +159,11 @@ struct VectorCalibratorCounts {
 };
 
 // ReplayCapacity: the filter's replay store (E-VF-1; its largest buffer: 52 bytes per sample in
-// float), smaller on a small MCU.
-template <typename Scalar, int InitCapacity = 64, int ReplayCapacity = 512>
+// float), smaller on a small MCU. HoldCapacity: the ring of recent samples (see the top; 84 bytes
+// per sample in float): it must span 2 (rate_half_span_s + |tau|) at the sample rate.
+template <typename Scalar, int InitCapacity = 64, int ReplayCapacity = 512, int HoldCapacity = 128>
 class VectorCalibrator {
+  static_assert(HoldCapacity >= 4);
   static_assert(CoreScalar<Scalar>);
 
  public:
@@ -167,8 +181,8 @@ class VectorCalibrator {
   // --- SensorLoop Calibrator contract (extended form) --------------------------------------------
   void begin() noexcept {
     counts_ = VectorCalibratorCounts{};
-    have_prev_ = false;
-    have_pending_ = false;
+    hold_n_ = 0;
+    hold_done_ = 0;
     n_kept_ = 0;
     noise_batch_.reset();
     noise_step_deg_ = cfg_.filter.init_min_rotation_deg;
@@ -224,6 +238,10 @@ class VectorCalibrator {
     // The candidate's own output 1-sigma over the survey envelope (E-VF-10).
     r.calibration_sigma_f_nT = static_cast<float>(out_.intensity_nT);
     r.calibration_sigma_enu_nT = static_cast<float>(out_.vector_nT);
+    // The time offset the filter found, relative to the attitudes the loop gave it: the loop's
+    // pipeline pairs the held-out samples and the records that way (E-VF-5).
+    if (filter_.config().estimate_time_offset)
+      r.time_offset_correction_s = static_cast<float>(filter_.time_offset_s());
     return r;
   }
 
@@ -372,6 +390,7 @@ class VectorCalibrator {
       noise_batch_.set_config(bc);
       res = noise_batch_.solve(BatchMethod::kOneStep);
     }
+    const Scalar lag_s = startup_time_offset(bc, &res);
     const BatchNoise<Scalar>& nz = res.noise;
     const bool ok = res.has_model && nz.estimated && std::isfinite(nz.mag_nT) &&
                     nz.mag_nT > Scalar(0) && nz.has_attitude && std::isfinite(nz.attitude_deg) &&
@@ -386,15 +405,76 @@ class VectorCalibrator {
     VfConfig<Scalar> fc = cfg_.filter;
     fc.mag_noise_nT = nz.mag_nT;
     fc.attitude_noise_rad = deg_to_rad(nz.attitude_deg);
+    if (fc.estimate_time_offset) fc.time_offset0_s = lag_s;
     filter_.configure(fc);
-    // The same samples start the filter (E-VF-1): it keeps them all (they are a step apart).
+    // The same samples start the filter (E-VF-1): it keeps them all (they are a step apart), with
+    // their attitudes moved by the start's time offset as the fit saw them.
     for (int i = 0; i < n_kept_; ++i) {
-      const VfStatus st = filter_.update(kept_[static_cast<std::size_t>(i)]);
+      const VfStatus st = filter_.update(shifted(kept_[static_cast<std::size_t>(i)], lag_s));
       if (st == VfStatus::kGated) ++counts_.gated;
     }
     n_kept_ = 0;
     noise_batch_.reset();
     refresh_output_report();
+  }
+
+  // The kept sample with its attitude moved to t - lag by its rate (R Exp(lag [Omega x]), E-VF-5).
+  static VfSample<Scalar> shifted(const VfSample<Scalar>& v, Scalar lag_s) noexcept {
+    VfSample<Scalar> o = v;
+    const Vec3<Scalar> rot = v.omega_n_rad_s * (lag_s - v.attitude_offset_s);
+    const Scalar ang = rot.norm();
+    if (ang > Scalar(0)) {
+      o.r_bn = v.r_bn * Eigen::AngleAxis<Scalar>(ang, rot / ang).toRotationMatrix();
+      o.attitude_offset_s = lag_s;
+    }
+    return o;
+  }
+
+  // The start-up set's time offset (DECISION, E-VF-5). The one-step fit has no time offset, so an
+  // INS latency unknown to the loop would be taken for attitude noise (a 10 ms latency on a turning
+  // survey: 0.12 deg instead of 0.015, and the filter runs with that figure). The fit's n-frame
+  // residuals e_i = g_i - h_n are regressed on d_i = Omega_i x g_i (g_i = R_i^T Rm^T W (m_i - o),
+  // the attitude moved by lag: de/dlag = -d), lag += (d . e) / (d . d), the attitudes are moved by
+  // it and the set is fitted again; kStartupLagPasses times. A step within twice its standard error
+  // (no rotation to see it by) stops it. The filter then starts from that offset.
+  static constexpr int kStartupLagPasses = 3;
+  Scalar startup_time_offset(const BatchConfig<Scalar>& bc, BatchResult<Scalar>* res) noexcept {
+    Scalar lag{0};
+    if (!cfg_.filter.estimate_time_offset) return cfg_.filter.time_offset0_s;
+    for (int pass = 0; pass < kStartupLagPasses; ++pass) {
+      if (!res->has_model || !res->has_h_n) break;
+      const Mat3<Scalar> rmt = res->model.rm.toRotationMatrix().transpose();
+      Scalar num{0}, den{0}, ee{0};
+      for (int i = 0; i < n_kept_; ++i) {
+        const VfSample<Scalar> v = shifted(kept_[static_cast<std::size_t>(i)], lag);
+        const Vec3<Scalar> g =
+            v.r_bn.transpose() * (rmt * (res->model.w * (v.m_nT - res->model.o)));
+        const Vec3<Scalar> d = v.omega_n_rad_s.cross(g);
+        const Vec3<Scalar> e = g - res->h_n_nT;
+        num += d.dot(e);
+        den += d.dot(d);
+        ee += e.dot(e);
+      }
+      if (!(den > Scalar(0))) break;
+      const Scalar step = num / den;
+      const Scalar dof = static_cast<Scalar>(std::max(3 * n_kept_ - 1, 1));
+      const Scalar s2 = std::max(ee - step * num, Scalar(0)) / dof;
+      if (!std::isfinite(step) || step * step <= Scalar(4) * s2 / den) break;
+      const Scalar next = std::clamp(lag + step, -cfg_.max_rate_span_s, cfg_.max_rate_span_s);
+      noise_batch_.reset();
+      for (int i = 0; i < n_kept_; ++i) {
+        const VfSample<Scalar> v = shifted(kept_[static_cast<std::size_t>(i)], next);
+        Scalar f = v.f_nT;
+        if (!(std::isfinite(f) && f > Scalar(0))) f = cfg_.filter.reference_field_nT;
+        noise_batch_.add_sample(v.m_nT, f, v.r_bn);
+      }
+      noise_batch_.set_config(bc);
+      BatchResult<Scalar> again = noise_batch_.solve(BatchMethod::kOneStep);
+      if (!again.has_model || !again.noise.estimated) break;
+      *res = again;
+      lag = next;
+    }
+    return lag;
   }
 
   // No estimate: every other kept sample, twice the attitude step (the set spans more motion).
@@ -430,17 +510,41 @@ class VectorCalibrator {
   int n_kept_{0};
   Scalar noise_step_deg_{2};
   CalibratorAdd process(const VfSample<Scalar>& v) noexcept;
-  // The attitude before the held sample, and the held sample (see the top).
-  bool have_prev_{false};
-  std::uint64_t prev_t_us_{0};
-  Mat3<Scalar> prev_r_ = Mat3<Scalar>::Identity();
-  bool have_pending_{false};
-  std::uint64_t pending_t_us_{0};
-  VfSample<Scalar> pending_{};
+
+  // ---- the hold ring (see the top) ----
+  struct Held {
+    VfSample<Scalar> v{};
+    std::uint64_t t_us{0};
+  };
+  // Logical index 0 is the oldest entry.
+  Held& held(int i) noexcept {
+    return hold_[static_cast<std::size_t>((hold_head_ + i) % HoldCapacity)];
+  }
+  const Held& held(int i) const noexcept {
+    return hold_[static_cast<std::size_t>((hold_head_ + i) % HoldCapacity)];
+  }
+  // The offset the next sample is aligned to: the filter's, within what the ring can reach.
+  Scalar offset_now() const noexcept {
+    const Scalar a = filter_.time_offset_s();
+    return std::isfinite(a) ? a : Scalar(0);
+  }
+  // Signed microseconds t - a (a in seconds), as a double-free integer step for the M4F.
+  static std::int64_t shifted_us(std::uint64_t t_us, Scalar a_s) noexcept {
+    return static_cast<std::int64_t>(t_us) -
+           static_cast<std::int64_t>(std::lround(a_s * Scalar(1e6)));
+  }
+  bool attitude_at(std::int64_t t_us, Mat3<Scalar>* r) const noexcept;
+  bool ready_to_process(int i) const noexcept;
+  CalibratorAdd process_held(int i) noexcept;
+  CalibratorAdd flush_held() noexcept;
+  std::array<Held, static_cast<std::size_t>(HoldCapacity)> hold_{};
+  int hold_head_{0};
+  int hold_n_{0};     // entries in the ring
+  int hold_done_{0};  // the oldest hold_done_ entries are processed (history)
 };
 
-template <typename Scalar, int InitCapacity, int ReplayCapacity>
-CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity>::add(
+template <typename Scalar, int InitCapacity, int ReplayCapacity, int HoldCapacity>
+CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacity>::add(
     const MagSample<Scalar>& s, const Mat3<Scalar>* r_bn) noexcept {
   ++counts_.seen;
   const bool bad_f = std::isinf(s.f_ref_nT);
@@ -451,10 +555,10 @@ CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity>::add(
   }
   if (r_bn == nullptr) {
     ++counts_.no_attitude;
-    // No rate across a missing attitude: the held sample goes on without one.
-    if (have_pending_) (void)process(pending_);
-    have_pending_ = false;
-    have_prev_ = false;
+    // No attitude to interpolate across: the held samples go on with what the ring has.
+    (void)flush_held();
+    hold_n_ = 0;
+    hold_done_ = 0;
     return CalibratorAdd::kRejected;
   }
   // Collecting for the noise estimate needs a reference now (the held sample would say so late).
@@ -463,34 +567,113 @@ CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity>::add(
     ++counts_.no_reference;
     return CalibratorAdd::kRejected;
   }
-  VfSample<Scalar> v;
-  v.m_nT = s.m_nT;
-  v.r_bn = *r_bn;
-  v.f_nT = s.f_ref_nT;
-  v.temperature_degC = s.temperature_degC;
   CalibratorAdd out = CalibratorAdd::kUsed;
-  if (have_pending_) {
-    if (s.t_us > pending_t_us_)
-      v.interval_s = static_cast<Scalar>(s.t_us - pending_t_us_) * Scalar(1e-6);
-    // The held sample's rate from its neighbours (see the top).
-    if (have_prev_ && s.t_us > prev_t_us_) {
-      const Scalar span = static_cast<Scalar>(s.t_us - prev_t_us_) * Scalar(1e-6);
-      if (span <= cfg_.max_rate_span_s)
-        pending_.omega_n_rad_s = rate_n_from_attitudes(prev_r_, v.r_bn, span);
-    }
-    out = process(pending_);
-    have_prev_ = true;
-    prev_t_us_ = pending_t_us_;
-    prev_r_ = pending_.r_bn;
+  if (hold_n_ > 0 && !(s.t_us > held(hold_n_ - 1).t_us)) {
+    // Time went back or stood still: the ring must not mix time bases.
+    out = flush_held();
+    hold_n_ = 0;
+    hold_done_ = 0;
   }
-  pending_ = v;
-  pending_t_us_ = s.t_us;
-  have_pending_ = true;
+  if (hold_n_ == HoldCapacity) {
+    // Full: the oldest unprocessed sample goes now; the oldest entry makes room.
+    if (hold_done_ == 0) out = process_held(0);
+    hold_head_ = (hold_head_ + 1) % HoldCapacity;
+    --hold_n_;
+    --hold_done_;
+  }
+  Held h;
+  h.t_us = s.t_us;
+  h.v.m_nT = s.m_nT;
+  h.v.r_bn = *r_bn;
+  h.v.f_nT = s.f_ref_nT;
+  h.v.temperature_degC = s.temperature_degC;
+  if (hold_n_ > 0)
+    h.v.interval_s = static_cast<Scalar>(s.t_us - held(hold_n_ - 1).t_us) * Scalar(1e-6);
+  held(hold_n_) = h;
+  ++hold_n_;
+  if (hold_done_ < hold_n_ && ready_to_process(hold_done_)) out = process_held(hold_done_);
   return out;
 }
 
-template <typename Scalar, int InitCapacity, int ReplayCapacity>
-CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity>::process(
+// R_bn at t_us, slerped between the two ring attitudes that bracket it (at most max_rate_span_s
+// apart); false outside the ring.
+template <typename Scalar, int InitCapacity, int ReplayCapacity, int HoldCapacity>
+bool VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacity>::attitude_at(
+    std::int64_t t_us, Mat3<Scalar>* r) const noexcept {
+  int lo = 0, hi = hold_n_;  // first entry at or after t_us
+  while (lo < hi) {
+    const int mid = (lo + hi) / 2;
+    if (static_cast<std::int64_t>(held(mid).t_us) < t_us)
+      lo = mid + 1;
+    else
+      hi = mid;
+  }
+  if (lo == hold_n_) return false;
+  const Held& b = held(lo);
+  if (static_cast<std::int64_t>(b.t_us) == t_us) {
+    *r = b.v.r_bn;
+    return true;
+  }
+  if (lo == 0) return false;
+  const Held& a = held(lo - 1);
+  const Scalar span = static_cast<Scalar>(b.t_us - a.t_us) * Scalar(1e-6);
+  if (!(span <= cfg_.max_rate_span_s)) return false;
+  const Scalar f =
+      static_cast<Scalar>(t_us - static_cast<std::int64_t>(a.t_us)) * Scalar(1e-6) / span;
+  *r = slerp_unit(Quat<Scalar>(a.v.r_bn), Quat<Scalar>(b.v.r_bn), f).toRotationMatrix();
+  return true;
+}
+
+// The ring reaches rate_half_span_s past the attitude time the sample needs.
+template <typename Scalar, int InitCapacity, int ReplayCapacity, int HoldCapacity>
+bool VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacity>::ready_to_process(
+    int i) const noexcept {
+  const std::int64_t need = shifted_us(held(i).t_us, offset_now() - cfg_.rate_half_span_s);
+  return static_cast<std::int64_t>(held(hold_n_ - 1).t_us) >= need;
+}
+
+template <typename Scalar, int InitCapacity, int ReplayCapacity, int HoldCapacity>
+CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacity>::process_held(
+    int i) noexcept {
+  VfSample<Scalar> v = held(i).v;
+  const std::uint64_t t_us = held(i).t_us;
+  const Scalar a = offset_now();
+  const Scalar w = cfg_.rate_half_span_s;
+  Mat3<Scalar> r_a, r_lo, r_hi;
+  if (attitude_at(shifted_us(t_us, a), &r_a)) {
+    v.r_bn = r_a;
+    v.attitude_offset_s = a;
+  }
+  const Scalar tq = v.attitude_offset_s;
+  if (w > Scalar(0) && attitude_at(shifted_us(t_us, tq + w), &r_lo) &&
+      attitude_at(shifted_us(t_us, tq - w), &r_hi)) {
+    v.omega_n_rad_s = rate_n_from_attitudes(r_lo, r_hi, Scalar(2) * w);
+  } else {
+    // The neighbours' rate (independent of the sample's own attitude noise).
+    const bool lo_ok = i > 0;
+    const bool hi_ok = i + 1 < hold_n_;
+    const Held& lo = held(lo_ok ? i - 1 : i);
+    const Held& hi = held(hi_ok ? i + 1 : i);
+    const Scalar span = static_cast<Scalar>(hi.t_us - lo.t_us) * Scalar(1e-6);
+    if (span > Scalar(0) && span <= cfg_.max_rate_span_s)
+      v.omega_n_rad_s = rate_n_from_attitudes(lo.v.r_bn, hi.v.r_bn, span);
+  }
+  hold_done_ = std::max(hold_done_, i + 1);
+  return process(v);
+}
+
+// Processes every held sample with what the ring has; the outcome of the last one.
+template <typename Scalar, int InitCapacity, int ReplayCapacity, int HoldCapacity>
+CalibratorAdd
+VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacity>::flush_held() noexcept {
+  CalibratorAdd out = CalibratorAdd::kUsed;
+  while (hold_done_ < hold_n_)
+    out = process_held(hold_done_);
+  return out;
+}
+
+template <typename Scalar, int InitCapacity, int ReplayCapacity, int HoldCapacity>
+CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacity>::process(
     const VfSample<Scalar>& v) noexcept {
   if (!noise_known_) return collect_for_noise(v);
   const bool was_running = filter_.initialised();

@@ -131,6 +131,9 @@ class DevicePipeline {
   }
 
   void set_time_offset_us(std::int64_t offset_us) noexcept { core_.set_time_offset_us(offset_us); }
+  void set_adopt_calibration_time_offset(bool on) noexcept {
+    core_.set_adopt_calibration_time_offset(on);
+  }
 
   Loop& loop() noexcept { return core_.loop(); }
   const Loop& loop() const noexcept { return core_.loop(); }

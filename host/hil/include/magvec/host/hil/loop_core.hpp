@@ -37,6 +37,9 @@ struct HilConfig {
   // Magnetometer time stamp minus the INS time of the attitude it belongs to (cal.json
   // time_offset_s): a sample stamped t pairs with the attitude at t - time_offset.
   std::int64_t time_offset_us{0};
+  // Adopt the time offset an in-loop calibration finds (core::PipelineConfig); off when
+  // time_offset_us is known.
+  bool adopt_calibration_time_offset{true};
   bool require_attitude_valid{true};
   bool start_calibration{true};
 };
@@ -81,6 +84,9 @@ class LoopCore {
   void set_time_offset_us(std::int64_t offset_us) noexcept {
     device_.set_time_offset_us(offset_us);
   }
+  void set_adopt_calibration_time_offset(bool on) noexcept {
+    device_.set_adopt_calibration_time_offset(on);
+  }
 
   void count_step() noexcept { device_.count_step(); }
 
@@ -101,6 +107,7 @@ class LoopCore {
     p.buffer = c.buffer;
     p.ins_latency_us = c.ins_latency_comp_us;
     p.time_offset_us = c.time_offset_us;
+    p.adopt_calibration_time_offset = c.adopt_calibration_time_offset;
     p.horizon_us = c.horizon_us;
     p.mag_period_us = pipeline::period_us_from_hz(mag_rate_hz);
     p.ins_period_us = pipeline::period_us_from_hz(ins_rate_hz);

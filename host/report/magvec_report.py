@@ -149,41 +149,52 @@ def fig_enu(rep, data, out):
 def fig_ekf(rep, data, out):
     t = load_csv(os.path.join(data, "trace.csv"))
     tr = rep["trace"]
-    names = [p["name"] for p in tr["params"]]
-    panels = names + (["nis"] if tr["has_nis"] else [])
+    params = tr["params"]
+    diags = tr.get("diagnostics", [])
+    cols = t.dtype.names  # update, t_s, (state, sigma) per state, then the diagnostics
+    panels = [(p["name"], cols[2 + 2 * k], cols[3 + 2 * k], p.get("truth"))
+              for k, p in enumerate(params)]
+    panels += [(d, cols[2 + 2 * len(params) + j], None, None) for j, d in enumerate(diags)]
     ncols = 3
     nrows = int(math.ceil(len(panels) / ncols))
     fig, axes = plt.subplots(nrows, ncols, figsize=(11, 2.1 * nrows + 0.8), sharex=True,
                              squeeze=False)
-    x = t["update"]
+    use_t = tr.get("x") == "t_s" and np.any(np.isfinite(t["t_s"]))
+    x = t["t_s"] if use_t else t["update"]
     start = len(x) // 10  # axis limits from the last 90 %: the first sigmas are the prior's
-    for k, name in enumerate(panels):
+    for k, (name, col, sigma_col, truth) in enumerate(panels):
         ax = axes[k // ncols, k % ncols]
-        col = t.dtype.names[1 + 2 * k] if name != "nis" else "nis"
         v = t[col]
         ax.plot(x, v, color=AFTER, linewidth=1.0)
-        if name != "nis":
-            sg = t["sigma_" + col]
+        if sigma_col is not None:
+            sg = t[sigma_col]
             if np.any(np.isfinite(sg)):
                 ax.fill_between(x, v - sg, v + sg, color=AFTER, alpha=0.25, linewidth=0)
                 lo = np.nanmin((v - sg)[start:])
                 hi = np.nanmax((v + sg)[start:])
+                if truth is not None:
+                    lo, hi = min(lo, truth), max(hi, truth)
                 if np.isfinite(lo) and np.isfinite(hi) and hi > lo:
                     pad = 0.15 * (hi - lo)
                     ax.set_ylim(lo - pad, hi + pad)
-        else:
+            if truth is not None:
+                ax.axhline(truth, color="k", linestyle="--", linewidth=0.8)
+        elif name == "nis":
             ax.axhline(1.0, color="k", linestyle="--", linewidth=0.7)
-        ax.set_title(name, fontsize=9)
+        ax.set_title(name if sigma_col is not None else name + " (diagnostic)", fontsize=9)
         ax.tick_params(labelsize=7)
         ax.ticklabel_format(axis="y", useOffset=False)
         ax.grid(alpha=0.3)
     for k in range(len(panels), nrows * ncols):
         axes[k // ncols, k % ncols].set_visible(False)
     for j in range(ncols):
-        axes[nrows - 1, j].set_xlabel("update")
-    fig.suptitle(f"EKF convergence: estimate and 1-sigma band per update "
-                 f"({tr['updates']} updates)", fontsize=11)
-    fig.tight_layout()
+        axes[nrows - 1, j].set_xlabel("t [s]" if use_t else "update")
+    title = (f"Filter states: estimate and 1-sigma band ({tr['updates']} trace rows)")
+    if tr.get("truth_params"):
+        title += "; dashed: the simulation's true value"
+    fig.suptitle(title, fontsize=11)
+    # Room for the title above the first row's panel titles.
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.45 / (2.1 * nrows + 0.8)))
     fig.savefig(os.path.join(out, "fig_ekf.png"), dpi=DPI)
     plt.close(fig)
 
@@ -231,7 +242,8 @@ CAPTIONS = {
                          "sphere",
     "fig_residual.png": "2. Total-field residual |h| - F before and after calibration",
     "fig_enu.png": "3. East/North/Up components before and after calibration",
-    "fig_ekf.png": "4. EKF convergence: each parameter with its 1-sigma band",
+    "fig_ekf.png": "4. Filter convergence: each state with its 1-sigma band (and the "
+                   "simulation's true value, dashed, when the data file states it)",
     "fig_coverage.png": "5. Coverage of the sphere of directions (equal-area map)",
 }
 
@@ -332,7 +344,7 @@ def write_html(rep, out, figures):
     if "fig_enu.png" not in figures:
         p.append("<p class=\"note\">3. E/N/U components: the data file has no attitude.</p>\n")
     if "fig_ekf.png" not in figures:
-        p.append("<p class=\"note\">4. EKF convergence: no trace given (--trace).</p>\n")
+        p.append("<p class=\"note\">4. Filter convergence: no trace given (--trace).</p>\n")
     if "fig_residual.png" not in figures:
         p.append("<p class=\"note\">2. Residual: the data file has no reference F "
                  "(F_nT column or --field-nT).</p>\n")
@@ -350,12 +362,23 @@ def write_html(rep, out, figures):
              "W only up to a rotation; compare G = W<sup>T</sup>W, not C<sup>-1</sup> element by "
              "element. &ndash; means no 1-sigma in cal.json.</p>\n")
     if rep.get("trace"):
-        p.append("<h2>EKF: final estimates</h2>\n<div class=\"scroll\"><table>\n"
-                 "<tr><th>parameter</th><th>value</th><th>1-sigma</th></tr>\n")
+        truth = bool(rep["trace"].get("truth_params"))
+        p.append("<h2>Filter: final estimates</h2>\n<div class=\"scroll\"><table>\n"
+                 "<tr><th>state</th><th>value</th><th>1-sigma</th>"
+                 + ("<th>truth</th><th>(value - truth) / 1-sigma</th>" if truth else "")
+                 + "</tr>\n")
         for r in rep["trace"]["final"]:
             p.append(f"<tr><td>{e(r['name'])}</td><td class=\"n\">{fmt(r['value'], r['sigma'])}"
-                     f"</td><td class=\"n\">{fmt_sigma(r['sigma'])}</td></tr>\n")
+                     f"</td><td class=\"n\">{fmt_sigma(r['sigma'])}</td>")
+            if truth:
+                z = r.get("z")
+                p.append(f"<td class=\"n\">{fmt(r.get('truth'), r['sigma'])}</td>"
+                         f"<td class=\"n\">{'&ndash;' if z is None else f'{z:+.2f}'}</td>")
+            p.append("</tr>\n")
         p.append("</table></div>\n")
+        if truth:
+            p.append("<p class=\"note\">Truth: the values the simulation states in the data "
+                     "file's header, in the filter's parameterisation.</p>\n")
     p.append("</main>\n</body>\n</html>\n")
     tmp = os.path.join(out, "index.html.tmp")
     with open(tmp, "w", encoding="utf-8") as f:

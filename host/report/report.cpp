@@ -8,6 +8,7 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <numbers>
+#include <utility>
 
 #include "magvec/core/compensator.hpp"
 #include "magvec/core/sensor_model.hpp"
@@ -277,7 +278,9 @@ TraceTable read_trace_csv(const std::string& path) {
   return t;
 }
 
-std::vector<TraceParam> trace_params(const TraceTable& t) {
+namespace {
+// Every numeric non-bookkeeping, non-sigma column with its sigma column (when it has one).
+std::vector<TraceParam> trace_columns(const TraceTable& t) {
   std::vector<TraceParam> out;
   const auto index_of = [&](const std::string& name) -> std::optional<std::size_t> {
     for (std::size_t i = 0; i < t.names.size(); ++i) {
@@ -287,8 +290,8 @@ std::vector<TraceParam> trace_params(const TraceTable& t) {
   };
   for (std::size_t i = 0; i < t.names.size(); ++i) {
     const std::string& n = t.names[i];
-    if (!t.numeric[i] || n == "update" || n == "t_s" || n == "status" || n == "nis" ||
-        n.rfind("sigma_", 0) == 0) {
+    if (!t.numeric[i] || n == "update" || n == "pass" || n == "row" || n == "t_s" ||
+        n == "status" || n == "initialised" || n.rfind("sigma_", 0) == 0) {
       continue;
     }
     TraceParam p{i, index_of("sigma_" + n), n};
@@ -298,6 +301,118 @@ std::vector<TraceParam> trace_params(const TraceTable& t) {
     out.push_back(p);
   }
   return out;
+}
+
+// The numbers of the first [...] after key (nested brackets flattened); empty when absent.
+std::vector<double> numbers_after(const std::string& line, const std::string& key) {
+  std::vector<double> v;
+  const std::size_t k = line.find(key);
+  if (k == std::string::npos) return v;
+  std::size_t i = line.find('[', k + key.size());
+  if (i == std::string::npos) return v;
+  int depth = 0;
+  std::string token;
+  const auto take = [&] {
+    if (token.empty()) return;
+    double x = 0;
+    const auto r = std::from_chars(token.data(), token.data() + token.size(), x);
+    v.push_back(r.ec == std::errc() ? x : kNaN);
+    token.clear();
+  };
+  for (; i < line.size(); ++i) {
+    const char c = line[i];
+    if (c == '[') {
+      ++depth;
+    } else if (c == ']') {
+      take();
+      if (--depth == 0) break;
+    } else if (c == ',' || c == ' ') {
+      take();
+    } else {
+      token.push_back(c);
+    }
+  }
+  return v;
+}
+
+// The number after key (up to the next space); NaN when absent.
+double number_after(const std::string& line, const std::string& key) {
+  const std::size_t k = line.find(key);
+  if (k == std::string::npos) return kNaN;
+  const std::size_t b = k + key.size();
+  const std::size_t e = line.find(' ', b);
+  const std::string token = line.substr(b, e == std::string::npos ? std::string::npos : e - b);
+  double x = 0;
+  const auto r = std::from_chars(token.data(), token.data() + token.size(), x);
+  return r.ec == std::errc() ? x : kNaN;
+}
+}  // namespace
+
+std::vector<TraceParam> trace_params(const TraceTable& t) {
+  std::vector<TraceParam> out;
+  for (const TraceParam& p : trace_columns(t))
+    if (p.sigma_column) out.push_back(p);
+  return out;
+}
+
+std::vector<TraceParam> trace_diagnostics(const TraceTable& t) {
+  std::vector<TraceParam> out;
+  for (const TraceParam& p : trace_columns(t))
+    if (!p.sigma_column) out.push_back(p);
+  return out;
+}
+
+std::map<std::string, double> simulation_truth(const std::vector<std::string>& comments) {
+  std::map<std::string, double> t;
+  bool simulated = false;
+  for (const std::string& c : comments)
+    simulated = simulated || c.find(" simulate: scenario ") != std::string::npos;
+  if (!simulated) return t;
+  static const char* const kAxis[3] = {"x", "y", "z"};
+  const auto put3 = [&](const std::vector<double>& v, const std::string& prefix,
+                        const std::string& suffix) {
+    if (v.size() != 3) return;
+    for (std::size_t i = 0; i < 3; ++i)
+      t[prefix + kAxis[i] + suffix] = v[i];
+  };
+  for (const std::string& c : comments) {
+    if (c.rfind("truth canonical:", 0) == 0) {
+      const std::vector<double> w = numbers_after(c, "W = A^-1 = ");
+      if (w.size() == 9) {
+        for (int r = 0; r < 3; ++r)
+          for (int k = 0; k < 3; ++k)
+            t["W" + std::to_string(r) + std::to_string(k)] = w[static_cast<std::size_t>(3 * r + k)];
+      }
+      put3(numbers_after(c, "o_nT = "), "o_", "_nT");
+    } else if (c.rfind("truth Li 2023:", 0) == 0) {
+      const std::vector<double> rm = numbers_after(c, "Rm_deg (alpha_m, beta_m, gamma_m) = ");
+      if (rm.size() == 3) {
+        t["am_deg"] = rm[0];
+        t["bm_deg"] = rm[1];
+        t["gm_deg"] = rm[2];
+      }
+    } else if (c.rfind("truth Ge 2017:", 0) == 0) {
+      put3(numbers_after(c, "b_nT = "), "b_", "_nT");
+    } else if (c.rfind("truth h_n (ENU) nT:", 0) == 0) {
+      const std::vector<double> h = numbers_after(c, "nT: ");
+      const std::vector<double> diurnal = numbers_after(c, "diurnal ");
+      const std::vector<double> step = numbers_after(c, "step ");
+      const auto zero = [](const std::vector<double>& v) {
+        return std::all_of(v.begin(), v.end(), [](double x) { return x == 0; });
+      };
+      if (h.size() == 3 && zero(diurnal) && zero(step)) {
+        t["hE_nT"] = h[0];
+        t["hN_nT"] = h[1];
+        t["hU_nT"] = h[2];
+      }
+    } else if (c.rfind("truth offset temperature coefficients nT/degC:", 0) == 0) {
+      put3(numbers_after(c, "nT/degC: "), "c_", "_nT_per_degC");
+    } else if (c.rfind("noise:", 0) == 0) {
+      const double latency = number_after(c, "INS latency ");
+      if (std::isfinite(latency)) t["dt_s"] = -latency;
+    }
+  }
+  return t;
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -318,8 +433,10 @@ ReportResult write_report_data(const ReportOptions& o) {
   bool has_attitude = false;
   bool file_has_f = false;
   const core::Compensator<double> comp(cal.model);
+  std::map<std::string, double> truth;
   {
     io::CsvReader reader(o.in_path, ropt);
+    truth = simulation_truth(reader.comments());
     has_attitude = reader.attitude_columns() != io::AttitudeColumns::kNone;
     file_has_f = reader.has_f();
     io::CsvRecord rec;
@@ -495,20 +612,40 @@ ReportResult write_report_data(const ReportOptions& o) {
   if (!o.trace_path.empty()) {
     const TraceTable t = read_trace_csv(o.trace_path);
     const std::vector<TraceParam> params = trace_params(t);
-    if (params.empty()) throw ReportError(o.trace_path + ": the trace has no parameter columns");
-    std::optional<std::size_t> col_update, col_nis;
-    for (std::size_t i = 0; i < t.names.size(); ++i) {
-      if (t.names[i] == "update" && t.numeric[i]) col_update = i;
-      if (t.names[i] == "nis" && t.numeric[i]) col_nis = i;
+    const std::vector<TraceParam> diags = trace_diagnostics(t);
+    if (params.empty()) {
+      throw ReportError(o.trace_path +
+                        ": the trace has no state columns (a column with its sigma_ column)");
     }
-    std::vector<std::string> cols = {"update"};
+    std::optional<std::size_t> col_update, col_nis, col_t;
+    for (std::size_t i = 0; i < t.names.size(); ++i) {
+      if ((t.names[i] == "update" || t.names[i] == "row") && t.numeric[i] && !col_update)
+        col_update = i;
+      if (t.names[i] == "nis" && t.numeric[i]) col_nis = i;
+      if (t.names[i] == "t_s" && t.numeric[i]) col_t = i;
+    }
+    // Seconds are shown in milliseconds (the time offset: a few ms, at microsecond precision).
+    const auto shown = [](const std::string& name) -> std::pair<std::string, double> {
+      if (name.size() > 2 && name.compare(name.size() - 2, 2, "_s") == 0)
+        return {name.substr(0, name.size() - 2) + "_ms", 1e3};
+      return {name, 1.0};
+    };
+    std::vector<std::string> cols = {"update", "t_s"};
     json pj = json::array();
     for (const TraceParam& p : params) {
-      cols.push_back(p.name);
-      cols.push_back("sigma_" + p.name);
-      pj.push_back({{"name", p.name}, {"has_sigma", p.sigma_column.has_value()}});
+      const auto [name, scale] = shown(p.name);
+      cols.push_back(name);
+      cols.push_back("sigma_" + name);
+      const auto it = truth.find(p.name);
+      pj.push_back({{"name", name},
+                    {"has_sigma", true},
+                    {"truth", num(it == truth.end() ? kNaN : it->second * scale)}});
     }
-    cols.emplace_back("nis");
+    json dj = json::array();
+    for (const TraceParam& p : diags) {
+      cols.push_back(p.name);
+      dj.push_back(p.name);
+    }
     io::CsvWriter trace_csv((data / "trace.csv").string(), cols);
     const std::size_t n = t.rows.size();
     const std::size_t step =
@@ -517,12 +654,14 @@ ReportResult write_report_data(const ReportOptions& o) {
     for (std::size_t k = 0; k < n; k += std::max<std::size_t>(step, 1)) {
       const auto emit = [&](std::size_t row) {
         const std::vector<double>& v = t.rows[row];
-        r = {col_update ? v[*col_update] : static_cast<double>(row)};
+        r = {col_update ? v[*col_update] : static_cast<double>(row), col_t ? v[*col_t] : kNaN};
         for (const TraceParam& p : params) {
-          r.push_back(v[p.column]);
-          r.push_back(p.sigma_column ? v[*p.sigma_column] : kNaN);
+          const double scale = shown(p.name).second;
+          r.push_back(v[p.column] * scale);
+          r.push_back(v[*p.sigma_column] * scale);
         }
-        r.push_back(col_nis ? v[*col_nis] : kNaN);
+        for (const TraceParam& p : diags)
+          r.push_back(v[p.column]);
         trace_csv.write_row(r);
       };
       emit(k);
@@ -531,15 +670,27 @@ ReportResult write_report_data(const ReportOptions& o) {
     trace_csv.commit();
     json final_j = json::array();
     const std::vector<double>& last = t.rows.back();
+    std::size_t with_truth = 0;
     for (const TraceParam& p : params) {
-      final_j.push_back({{"name", p.name},
-                         {"value", num(last[p.column])},
-                         {"sigma", num(p.sigma_column ? last[*p.sigma_column] : kNaN)}});
+      const auto [name, scale] = shown(p.name);
+      const double value = last[p.column] * scale;
+      const double sigma = last[*p.sigma_column] * scale;
+      const auto it = truth.find(p.name);
+      const double tv = it == truth.end() ? kNaN : it->second * scale;
+      if (std::isfinite(tv)) ++with_truth;
+      final_j.push_back({{"name", name},
+                         {"value", num(value)},
+                         {"sigma", num(sigma)},
+                         {"truth", num(tv)},
+                         {"z", num(sigma > 0 ? (value - tv) / sigma : kNaN)}});
     }
     trace_j = {{"file", o.trace_path},
                {"updates", n},
+               {"x", col_t ? "t_s" : "update"},
                {"params", pj},
+               {"diagnostics", dj},
                {"final", final_j},
+               {"truth_params", with_truth},
                {"has_nis", col_nis.has_value()}};
   }
 

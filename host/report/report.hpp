@@ -10,6 +10,7 @@
 #include <array>
 #include <cstdint>
 #include <limits>
+#include <map>
 #include <optional>
 #include <stdexcept>
 #include <string>
@@ -93,14 +94,25 @@ struct TraceTable {
 };
 TraceTable read_trace_csv(const std::string& path);
 
-// Parameters of a trace: numeric columns other than update, t_s, status, nis and sigma_*; each
-// paired with its sigma column: sigma_<name>, or sigma_<name without its unit suffix>.
+// States of a trace: the numeric columns with a 1-sigma column, sigma_<name> or sigma_<name
+// without its unit suffix (the filter's states). Diagnostics: the other numeric columns except
+// the bookkeeping ones (update, pass, row, t_s, status, initialised): nis, innovations, predicted
+// sigmas; drawn without a band.
 struct TraceParam {
   std::size_t column;
   std::optional<std::size_t> sigma_column;
   std::string name;
 };
 std::vector<TraceParam> trace_params(const TraceTable& t);
+std::vector<TraceParam> trace_diagnostics(const TraceTable& t);
+
+// The true values a `magvec simulate` file states in its header, by the names the traces use:
+// W00..W22 (canonical W), o_x_nT.. (its offset), am_deg/bm_deg/gm_deg (Li misalignment),
+// hE_nT/hN_nT/hU_nT (when the field neither varies nor steps), dt_s (magnetometer minus INS:
+// minus the simulated INS latency), c_x_nT_per_degC.. (offset temperature coefficients) and
+// b_x_nT.. (Ge offset). Ge's C^-1 is left out: a scalar-only filter determines it only up to a
+// rotation, so its truth would look like an error that is none. Empty for other files.
+std::map<std::string, double> simulation_truth(const std::vector<std::string>& comments);
 
 struct ReportResult {
   std::vector<std::string> figures;  // PNG file names the page must show

@@ -19,6 +19,8 @@
 #include <string>
 #include <vector>
 
+#include <nlohmann/json.hpp>
+
 #include "calibration/calibration_file.hpp"
 #include "magvec/core/sensor_model.hpp"
 #include "magvec/drivers/sim/simulator.hpp"
@@ -253,13 +255,16 @@ TEST_F(ReportData, TraceColumnsPairWithTheirSigmas) {
   ASSERT_EQ(t.rows.size(), 2u);
   EXPECT_FALSE(t.numeric[2]);
   const std::vector<rp::TraceParam> p = rp::trace_params(t);
-  ASSERT_EQ(p.size(), 3u);
+  ASSERT_EQ(p.size(), 2u);  // the states: the columns with a sigma column
   EXPECT_EQ(p[0].name, "cinv00");
   EXPECT_EQ(p[0].sigma_column, std::optional<std::size_t>(5));
   EXPECT_EQ(p[1].name, "b_x_nT");
   EXPECT_EQ(p[1].sigma_column, std::optional<std::size_t>(6));  // sigma_b_x (unit dropped)
-  EXPECT_EQ(p[2].name, "extra");
-  EXPECT_FALSE(p[2].sigma_column.has_value());
+  // The rest but the bookkeeping columns are diagnostics, drawn without a band.
+  const std::vector<rp::TraceParam> d = rp::trace_diagnostics(t);
+  ASSERT_EQ(d.size(), 2u);
+  EXPECT_EQ(d[0].name, "extra");
+  EXPECT_EQ(d[1].name, "nis");
   EXPECT_DOUBLE_EQ(t.rows[1][3], 1.1);
 
   std::ofstream(file("bad.csv")) << "update,cinv00\n0,1\n1\n";
@@ -473,7 +478,77 @@ TEST_F(ReportCli, EveryFigureIsAValidPngReferencedByThePage) {
   EXPECT_NE(html_.find("Calibration: skipped (non-finite)</th><td class=\"n\">7<"),
             std::string::npos);
   EXPECT_NE(html_.find("Ge et al. 2017"), std::string::npos);
-  EXPECT_NE(html_.find("EKF: final estimates"), std::string::npos);
+  EXPECT_NE(html_.find("Filter: final estimates"), std::string::npos);
+}
+
+// The truth a simulated file states, in the names the traces use; nothing for other files.
+TEST_F(ReportData, SimulationTruthFromTheFileHeader) {
+  const Result sim = magvec("simulate --scenario survey --samples 50 --ins-latency-s 0.012 --out " +
+                            file("s.csv"));
+  ASSERT_EQ(sim.status, 0) << sim.output;
+  const magvec::drivers::sim::ScenarioConfig cfg = magvec::drivers::sim::scenario_survey();
+  const auto truth = rp::simulation_truth(magvec::host::io::CsvReader(file("s.csv")).comments());
+  const magvec::core::Mat3<double>& w = cfg.truth.w;
+  EXPECT_DOUBLE_EQ(truth.at("W00"), w(0, 0));
+  EXPECT_DOUBLE_EQ(truth.at("W12"), w(1, 2));
+  EXPECT_DOUBLE_EQ(truth.at("W21"), w(2, 1));
+  EXPECT_DOUBLE_EQ(truth.at("o_y_nT"), cfg.truth.o(1));
+  EXPECT_DOUBLE_EQ(truth.at("b_z_nT"), cfg.truth.o(2));
+  magvec::core::LiParams<double> li;
+  ASSERT_EQ(magvec::core::to_li(cfg.truth, &li), magvec::core::ConversionStatus::kOk);
+  EXPECT_NEAR(truth.at("bm_deg"), li.rm_rad(1) * 180 / std::numbers::pi, 1e-12);
+  EXPECT_DOUBLE_EQ(truth.at("hN_nT"), cfg.h_n_nT(1));
+  EXPECT_DOUBLE_EQ(truth.at("dt_s"), -0.012);  // magnetometer minus INS: the attitude is older
+  EXPECT_DOUBLE_EQ(truth.at("c_x_nT_per_degC"), 0.0);
+  EXPECT_EQ(truth.count("cinv00"), 0u);  // a scalar-only filter's C^-1 is free up to a rotation
+  // A varying field has no single true h_n.
+  ASSERT_EQ(
+      magvec("simulate --scenario survey --samples 50 --diurnal-nT 0 0 20 --out " + file("d.csv"))
+          .status,
+      0);
+  const auto varying = rp::simulation_truth(magvec::host::io::CsvReader(file("d.csv")).comments());
+  EXPECT_EQ(varying.count("hE_nT"), 0u);
+  EXPECT_EQ(varying.count("W00"), 1u);
+  EXPECT_TRUE(rp::simulation_truth({"a recording", "truth canonical: W = A^-1 = [[1]]"}).empty());
+}
+
+// The vector filter's report: every state plotted with its 1-sigma band and the simulation's
+// truth; the final estimates are scored against that truth in the page. On a survey with an
+// unknown 10 ms INS latency every state lies within 4 of its 1-sigmas of the truth.
+TEST_F(ReportCli, VectorEkfTraceStatesWithTheirBandsAndTheTruth) {
+  ASSERT_EQ(magvec("simulate --scenario survey --samples 20000 --ins-latency-s 0.01 --seed 7 "
+                   "--out " +
+                   file("sv.csv"))
+                .status,
+            0);
+  const Result c = magvec("calibrate --method vector-ekf --in " + file("sv.csv") + " --out " +
+                          file("cal.json") + " --trace " + file("trace.csv"));
+  ASSERT_EQ(c.status, 0) << c.output;
+  const Result r = magvec("report --cal " + file("cal.json") + " --in " + file("sv.csv") +
+                          " --trace " + file("trace.csv") + " --out " + file("rep"));
+  ASSERT_EQ(r.status, 0) << r.output;
+  const nlohmann::json rep = nlohmann::json::parse(slurp(file("rep/data/report.json")));
+  const nlohmann::json& tr = rep.at("trace");
+  EXPECT_EQ(tr.at("x"), "t_s");
+  EXPECT_EQ(tr.at("params").size(), 19u);  // the filter's 19 states
+  EXPECT_EQ(tr.at("truth_params"), 19u);
+  EXPECT_EQ(tr.at("diagnostics").size(), 5u);  // nis and the four innovations
+  int scored = 0;
+  for (const nlohmann::json& f : tr.at("final")) {
+    SCOPED_TRACE(f.dump());
+    ASSERT_FALSE(f.at("z").is_null());
+    EXPECT_LT(std::abs(f.at("z").get<double>()), 4.0);
+    ++scored;
+  }
+  EXPECT_EQ(scored, 19);
+  bool dt_ms = false;
+  for (const nlohmann::json& f : tr.at("final"))
+    dt_ms = dt_ms || (f.at("name") == "dt_ms" && f.at("truth").get<double>() == -10.0);
+  EXPECT_TRUE(dt_ms);  // seconds shown in milliseconds
+  const std::string html = slurp(file("rep/index.html"));
+  EXPECT_NE(html.find("(value - truth) / 1-sigma"), std::string::npos);
+  const PixelStats s = pixel_stats(dir_ / "rep" / "fig_ekf.png");
+  EXPECT_GT(s.colours, 200);
 }
 
 TEST_F(ReportCli, TextFromFilesIsEscaped) {

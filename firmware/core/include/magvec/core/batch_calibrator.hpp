@@ -144,6 +144,22 @@ class BatchCalibrator {
     return add(m, f_nT, nullptr);
   }
 
+  // Moves the attitude of each stored sample i < n to its time minus step_s, R_bn Exp(step_s
+  // [omega_of(i) x]) (omega_of(i): its rotation rate, n-frame axes): fit_time_offset() below.
+  template <typename OmegaOf>
+  void shift_attitudes(std::size_t n, Scalar step_s, OmegaOf&& omega_of) noexcept {
+    for (std::size_t i = 0; i < std::min(n, store_.size()); ++i) {
+      StoredSample<Scalar>& s = store_[i];
+      const Vec3<Scalar> rot = omega_of(i) * step_s;
+      const Scalar a = rot.norm();
+      if (!s.has_attitude() || !(a > Scalar(0))) continue;
+      Quat<Scalar> q = Quat<Scalar>(s.q[0], s.q[1], s.q[2], s.q[3]) *
+                       Quat<Scalar>(Eigen::AngleAxis<Scalar>(a, rot / a));
+      q.normalize();
+      s.q = {q.w(), q.x(), q.y(), q.z()};
+    }
+  }
+
   BatchResult<Scalar> solve(BatchMethod method = BatchMethod::kOneStep) noexcept;
 
   // The one-step fit alone from a previous result, at that result's noise figures (no
@@ -610,6 +626,55 @@ OneStepSolution<Scalar> BatchCalibrator<Scalar, Capacity>::refit_one_step(
   o.estimate_noise = false;
   o.scale_sigma_by_residual = false;
   return OneStepFit<Scalar>::solve(store_, normalization(), from.li, from.h_n_nT, o);
+}
+
+// The magnetometer-INS time offset of a batch fit's set (docs/equations.md E-TO-4). The one-step
+// fit has no time offset, so a latency nobody configured is taken for attitude noise and absorbed
+// into Rm and h_n. The fit's n-frame residuals e_i = g_i - h_n (g_i = R_i^T Rm^T W (m_i - o)) are
+// regressed on d_i = Omega_i x g_i (moving the attitude to t - lag changes e_i by -lag d_i):
+// lag += (d . e) / (d . d); the stored attitudes are moved by the step and the set is fitted
+// again, up to `passes` times. A step within twice its standard error (no rotation to see it by)
+// ends it. On return the batch holds the moved set and *res its fit; the lag is the total move
+// (0: none). omega_of(i): sample i's rotation rate (n-frame axes, rad/s; zero when unknown).
+template <typename Scalar, std::size_t Capacity, typename OmegaOf>
+Scalar fit_time_offset(BatchCalibrator<Scalar, Capacity>* batch, BatchMethod method,
+                       Scalar max_abs_s, OmegaOf&& omega_of, BatchResult<Scalar>* res,
+                       int passes = 3) noexcept {
+  Scalar lag{0};
+  const std::size_t n = batch->store().size();
+  for (int pass = 0; pass < passes; ++pass) {
+    if (!res->has_model || !res->has_h_n) break;
+    const Mat3<Scalar> rmt = res->model.rm.toRotationMatrix().transpose();
+    Scalar num{0}, den{0}, ee{0};
+    std::size_t used = 0;
+    for (std::size_t i = 0; i < n; ++i) {
+      const StoredSample<Scalar>& s = batch->store()[i];
+      if (!s.has_attitude() || s.outlier()) continue;
+      const Vec3<Scalar> g =
+          s.r_bn().transpose() * (rmt * (res->model.w * (s.raw() - res->model.o)));
+      const Vec3<Scalar> d = omega_of(i).cross(g);
+      const Vec3<Scalar> e = g - res->h_n_nT;
+      num += d.dot(e);
+      den += d.dot(d);
+      ee += e.dot(e);
+      ++used;
+    }
+    if (!(den > Scalar(0)) || used < 2) break;
+    const Scalar step = num / den;
+    const Scalar s2 = std::max(ee - step * num, Scalar(0)) / static_cast<Scalar>(3 * used - 1);
+    if (!std::isfinite(step) || step * step <= Scalar(4) * s2 / den) break;
+    const Scalar next = std::clamp(lag + step, -max_abs_s, max_abs_s);
+    const Scalar move = next - lag;
+    batch->shift_attitudes(n, move, omega_of);
+    BatchResult<Scalar> again = batch->solve(method);
+    if (!again.has_model) {
+      batch->shift_attitudes(n, -move, omega_of);
+      break;
+    }
+    *res = again;
+    lag = next;
+  }
+  return lag;
 }
 
 // Compiled once for the host's capacities (firmware/core/src/inst_batch_calibrator_double.cpp,

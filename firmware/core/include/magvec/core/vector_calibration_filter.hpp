@@ -57,20 +57,6 @@ struct VfSample {
   Scalar interval_s = std::numeric_limits<Scalar>::quiet_NaN();        // since the previous sample
 };
 
-// Rotation rate in n-frame axes from a body rate (gyro): Omega = R_bn^T omega_b (E-TO-1).
-template <typename Scalar>
-Vec3<Scalar> rate_n_from_body(const Mat3<Scalar>& r_bn, const Vec3<Scalar>& omega_b) noexcept {
-  return r_bn.transpose() * omega_b;
-}
-// Rotation rate from the attitudes before and after a sample: Log(R_+^T R_-) / (t_+ - t_-).
-template <typename Scalar>
-Vec3<Scalar> rate_n_from_attitudes(const Mat3<Scalar>& r_bn_before, const Mat3<Scalar>& r_bn_after,
-                                   Scalar span_s) noexcept {
-  if (!(span_s > Scalar(0))) return Vec3<Scalar>::Zero();
-  const Eigen::AngleAxis<Scalar> aa(Mat3<Scalar>(r_bn_after.transpose() * r_bn_before));
-  return aa.axis() * (aa.angle() / span_s);
-}
-
 enum class VfStatus : std::uint8_t {
   kAccepted,             // measurement updates applied
   kCollecting,           // kept (or skipped) for the start from data

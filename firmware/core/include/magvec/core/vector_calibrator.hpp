@@ -390,7 +390,7 @@ class VectorCalibrator {
       noise_batch_.set_config(bc);
       res = noise_batch_.solve(BatchMethod::kOneStep);
     }
-    const Scalar lag_s = startup_time_offset(bc, &res);
+    const Scalar lag_s = startup_time_offset(&res);
     const BatchNoise<Scalar>& nz = res.noise;
     const bool ok = res.has_model && nz.estimated && std::isfinite(nz.mag_nT) &&
                     nz.mag_nT > Scalar(0) && nz.has_attitude && std::isfinite(nz.attitude_deg) &&
@@ -405,6 +405,7 @@ class VectorCalibrator {
     VfConfig<Scalar> fc = cfg_.filter;
     fc.mag_noise_nT = nz.mag_nT;
     fc.attitude_noise_rad = deg_to_rad(nz.attitude_deg);
+    // The kept attitudes were taken at the filter's offset then (0: it was not running).
     if (fc.estimate_time_offset) fc.time_offset0_s = lag_s;
     filter_.configure(fc);
     // The same samples start the filter (E-VF-1): it keeps them all (they are a step apart), with
@@ -418,63 +419,30 @@ class VectorCalibrator {
     refresh_output_report();
   }
 
-  // The kept sample with its attitude moved to t - lag by its rate (R Exp(lag [Omega x]), E-VF-5).
-  static VfSample<Scalar> shifted(const VfSample<Scalar>& v, Scalar lag_s) noexcept {
+  // The kept sample with its attitude moved by a further move_s along its rate (R Exp(move
+  // [Omega x]), E-VF-5), as fit_time_offset() moved the fit's copy.
+  static VfSample<Scalar> shifted(const VfSample<Scalar>& v, Scalar move_s) noexcept {
     VfSample<Scalar> o = v;
-    const Vec3<Scalar> rot = v.omega_n_rad_s * (lag_s - v.attitude_offset_s);
+    const Vec3<Scalar> rot = v.omega_n_rad_s * move_s;
     const Scalar ang = rot.norm();
     if (ang > Scalar(0)) {
       o.r_bn = v.r_bn * Eigen::AngleAxis<Scalar>(ang, rot / ang).toRotationMatrix();
-      o.attitude_offset_s = lag_s;
+      o.attitude_offset_s = v.attitude_offset_s + move_s;
     }
     return o;
   }
 
-  // The start-up set's time offset (DECISION, E-VF-5). The one-step fit has no time offset, so an
-  // INS latency unknown to the loop would be taken for attitude noise (a 10 ms latency on a turning
-  // survey: 0.12 deg instead of 0.015, and the filter runs with that figure). The fit's n-frame
-  // residuals e_i = g_i - h_n are regressed on d_i = Omega_i x g_i (g_i = R_i^T Rm^T W (m_i - o),
-  // the attitude moved by lag: de/dlag = -d), lag += (d . e) / (d . d), the attitudes are moved by
-  // it and the set is fitted again; kStartupLagPasses times. A step within twice its standard error
-  // (no rotation to see it by) stops it. The filter then starts from that offset.
-  static constexpr int kStartupLagPasses = 3;
-  Scalar startup_time_offset(const BatchConfig<Scalar>& bc, BatchResult<Scalar>* res) noexcept {
-    Scalar lag{0};
-    if (!cfg_.filter.estimate_time_offset) return cfg_.filter.time_offset0_s;
-    for (int pass = 0; pass < kStartupLagPasses; ++pass) {
-      if (!res->has_model || !res->has_h_n) break;
-      const Mat3<Scalar> rmt = res->model.rm.toRotationMatrix().transpose();
-      Scalar num{0}, den{0}, ee{0};
-      for (int i = 0; i < n_kept_; ++i) {
-        const VfSample<Scalar> v = shifted(kept_[static_cast<std::size_t>(i)], lag);
-        const Vec3<Scalar> g =
-            v.r_bn.transpose() * (rmt * (res->model.w * (v.m_nT - res->model.o)));
-        const Vec3<Scalar> d = v.omega_n_rad_s.cross(g);
-        const Vec3<Scalar> e = g - res->h_n_nT;
-        num += d.dot(e);
-        den += d.dot(d);
-        ee += e.dot(e);
-      }
-      if (!(den > Scalar(0))) break;
-      const Scalar step = num / den;
-      const Scalar dof = static_cast<Scalar>(std::max(3 * n_kept_ - 1, 1));
-      const Scalar s2 = std::max(ee - step * num, Scalar(0)) / dof;
-      if (!std::isfinite(step) || step * step <= Scalar(4) * s2 / den) break;
-      const Scalar next = std::clamp(lag + step, -cfg_.max_rate_span_s, cfg_.max_rate_span_s);
-      noise_batch_.reset();
-      for (int i = 0; i < n_kept_; ++i) {
-        const VfSample<Scalar> v = shifted(kept_[static_cast<std::size_t>(i)], next);
-        Scalar f = v.f_nT;
-        if (!(std::isfinite(f) && f > Scalar(0))) f = cfg_.filter.reference_field_nT;
-        noise_batch_.add_sample(v.m_nT, f, v.r_bn);
-      }
-      noise_batch_.set_config(bc);
-      BatchResult<Scalar> again = noise_batch_.solve(BatchMethod::kOneStep);
-      if (!again.has_model || !again.noise.estimated) break;
-      *res = again;
-      lag = next;
-    }
-    return lag;
+  // The start-up set's time offset (DECISION, E-VF-5): the one-step fit has none, so an INS
+  // latency unknown to the loop would be taken for attitude noise (a 10 ms latency on a turning
+  // survey: 0.12 deg instead of 0.015, and the filter runs with that figure); fit_time_offset()
+  // (batch_calibrator.hpp, E-TO-4) regresses it out of the fit's residuals first. The filter then
+  // starts from that offset.
+  Scalar startup_time_offset(BatchResult<Scalar>* res) noexcept {
+    if (!cfg_.filter.estimate_time_offset) return Scalar(0);  // configured: the filter holds it
+    // The kept samples are stored as they came (offset as given); the rates are theirs.
+    return fit_time_offset(
+        &noise_batch_, BatchMethod::kOneStep, cfg_.max_rate_span_s,
+        [this](std::size_t i) noexcept { return kept_[i].omega_n_rad_s; }, res);
   }
 
   // No estimate: every other kept sample, twice the attitude step (the set spans more motion).

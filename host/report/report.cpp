@@ -369,11 +369,14 @@ std::map<std::string, double> simulation_truth(const std::vector<std::string>& c
     simulated = simulated || c.find(" simulate: scenario ") != std::string::npos;
   if (!simulated) return t;
   static const char* const kAxis[3] = {"x", "y", "z"};
-  const auto put3 = [&](const std::vector<double>& v, const std::string& prefix,
-                        const std::string& suffix) {
+  const auto put = [&](const std::vector<double>& v, const std::array<std::string, 3>& names) {
     if (v.size() != 3) return;
     for (std::size_t i = 0; i < 3; ++i)
-      t[prefix + kAxis[i] + suffix] = v[i];
+      t[names[i]] = v[i];
+  };
+  const auto put3 = [&](const std::vector<double>& v, const std::string& prefix,
+                        const std::string& suffix) {
+    put(v, {prefix + kAxis[0] + suffix, prefix + kAxis[1] + suffix, prefix + kAxis[2] + suffix});
   };
   for (const std::string& c : comments) {
     if (c.rfind("truth canonical:", 0) == 0) {
@@ -385,12 +388,7 @@ std::map<std::string, double> simulation_truth(const std::vector<std::string>& c
       }
       put3(numbers_after(c, "o_nT = "), "o_", "_nT");
     } else if (c.rfind("truth Li 2023:", 0) == 0) {
-      const std::vector<double> rm = numbers_after(c, "Rm_deg (alpha_m, beta_m, gamma_m) = ");
-      if (rm.size() == 3) {
-        t["am_deg"] = rm[0];
-        t["bm_deg"] = rm[1];
-        t["gm_deg"] = rm[2];
-      }
+      put(numbers_after(c, "Rm_deg (alpha_m, beta_m, gamma_m) = "), {"am_deg", "bm_deg", "gm_deg"});
     } else if (c.rfind("truth Ge 2017:", 0) == 0) {
       put3(numbers_after(c, "b_nT = "), "b_", "_nT");
     } else if (c.rfind("truth h_n (ENU) nT:", 0) == 0) {
@@ -400,11 +398,7 @@ std::map<std::string, double> simulation_truth(const std::vector<std::string>& c
       const auto zero = [](const std::vector<double>& v) {
         return std::all_of(v.begin(), v.end(), [](double x) { return x == 0; });
       };
-      if (h.size() == 3 && zero(diurnal) && zero(step)) {
-        t["hE_nT"] = h[0];
-        t["hN_nT"] = h[1];
-        t["hU_nT"] = h[2];
-      }
+      if (zero(diurnal) && zero(step)) put(h, {"hE_nT", "hN_nT", "hU_nT"});
     } else if (c.rfind("truth offset temperature coefficients nT/degC:", 0) == 0) {
       put3(numbers_after(c, "nT/degC: "), "c_", "_nT_per_degC");
     } else if (c.rfind("noise:", 0) == 0) {

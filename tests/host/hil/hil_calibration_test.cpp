@@ -15,6 +15,7 @@
 #include <cmath>
 #include <cstdio>
 #include <memory>
+#include <string>
 
 #include "enu_floor.hpp"
 #include "magvec/core/batch_li_calibrator.hpp"
@@ -203,120 +204,118 @@ TEST(HilCalibration, TenMinuteSurveyCalibratesInTheLoopToTheNoiseFloors) {
   EXPECT_EQ(health.cal_rejected, cal->counts().rejected);
 }
 
-// The INS on a real platform is late by more than its configured transport latency, by an amount
-// nobody measured. Here the CAN frames arrive 10 ms after their epoch and the loop is told 0.5 ms
-// (the default): every attitude it pairs is 9.5 ms old. The vector-ekf calibrator, told neither
-// noise nor latency, finds the offset (its start-up fit regresses the lag out before estimating
-// the noise, and its filter takes each attitude at t - tau from the INS samples, E-VF-5); the
-// pipeline pairs the held-out samples and the records at that offset. Scored against the
-// simulator's true attitude and field: E/N/U within 1.05x of the floor after the manoeuvre
-// (measured 1.013-1.020; without the start-up regression of the lag 1.035-1.053, the offset's
-// 1-sigma 0.30 ms instead of 0.023). Before, the filter's offset came out at -9.2 +- 0.3 ms and
-// the held-out vector check refused the candidate (vector_validation_failed, `magvec run` seed
-// 3); with the noise given, it was applied with the records still paired 9.5 ms off.
-TEST(HilCalibration, VectorEkfFindsAnUnknownInsLatencyAndThePipelineAdoptsIt) {
-  using VecCal = core::VectorCalibrator<double>;
-  using VecSession = HilSession<VecCal>;
-  ScenarioConfig sc = drivers::sim::scenario_survey();  // 200 Hz, 0.3 nT, 0.015 deg
+// 180 s of survey (200 Hz, 0.3 nT, 0.015 deg) whose INS CAN frames arrive 10 ms after their epoch
+// while the loop is told 0.5 ms (the default): every attitude it pairs is 9.5 ms old. Every
+// calibrated record after the manoeuvre is scored against the simulator's truth.
+constexpr std::uint32_t kCanLatencyUs = 10'000;
+struct LatencyRun {
+  core::CalState state{core::CalState::kIdle};
+  std::string failure;
+  double pipeline_offset_s{0};
+  std::uint64_t offset_steps{0};
+  double unknown_s{0};
+  test::EnuFloorAccumulator enu;
+  Rms f_err, f_floor;
+};
+template <typename Cal>
+LatencyRun run_unknown_latency(Cal& cal, std::uint64_t seed, const HilConfig& hc) {
+  using S = HilSession<Cal>;
+  ScenarioConfig sc = drivers::sim::scenario_survey();
   sc.num_samples = static_cast<std::uint32_t>(180.0 * sc.rate_hz);
-  Simulator sim(sc, 2031);
+  Simulator sim(sc, seed);
   SimRigConfig rc;
   rc.link = drivers::sim::MagLink::kSpi;
   rc.adc.transfer.nT_per_volt = {1e5, 1e5, 1e5};
-  rc.ins.can_latency_us = 10'000;
-  HilConfig hc;  // ins_latency_comp_us 500: 9.5 ms unknown; no noise figures
-  const double unknown_s = 1e-6 * (rc.ins.can_latency_us - hc.ins_latency_comp_us);
-  auto cal = std::make_unique<VecCal>();
-  ScoringSink<VecSession> sink(sc, rc, sc.survey.manoeuvre_s + 5.0, unknown_s);
-  auto hil = std::make_unique<VecSession>(sim, rc, *cal, sink, hc);
+  rc.ins.can_latency_us = kCanLatencyUs;
+  LatencyRun out;
+  out.unknown_s = 1e-6 * (kCanLatencyUs - hc.ins_latency_comp_us);
+  ScoringSink<S> sink(sc, rc, sc.survey.manoeuvre_s + 5.0, out.unknown_s);
+  auto hil = std::make_unique<S>(sim, rc, cal, sink, hc);
   sink.attach(hil.get());
-  ASSERT_EQ(hil->init(), hal::Status::kOk);
+  if (hil->init() != hal::Status::kOk) return out;
   hil->run();
-  const auto& loop = hil->loop();
-  ASSERT_EQ(loop.state(), core::CalState::kApplied)
-      << "failure " << core::cal_failure_name(loop.failure()) << " code "
-      << static_cast<int>(loop.solver_code());
-  const double offset_s = 1e-6 * static_cast<double>(hil->core().pipeline().time_offset_us());
-  const double sigma_s = cal->filter().sigmas().dt_s;
-  std::printf("pipeline time offset %.3f ms (filter %.4f +- %.4f ms), truth %.3f ms\n",
-              offset_s * 1e3, cal->filter().time_offset_s() * 1e3, sigma_s * 1e3, -unknown_s * 1e3);
-  // The attitude is older than the reading: magnetometer minus INS is negative.
-  EXPECT_NEAR(cal->filter().time_offset_s(), -unknown_s, std::max(4 * sigma_s, 1e-4));
-  EXPECT_EQ(hil->core().pipeline().counters().time_offset_steps, 1u);
-  ASSERT_GT(sink.enu.n, 20000u);
+  out.state = hil->loop().state();
+  out.failure = std::string(core::cal_failure_name(hil->loop().failure())) + " code " +
+                std::to_string(hil->loop().solver_code());
+  out.pipeline_offset_s = 1e-6 * static_cast<double>(hil->core().pipeline().time_offset_us());
+  out.offset_steps = hil->core().pipeline().counters().time_offset_steps;
+  out.enu = sink.enu;
+  out.f_err = sink.f_err;
+  out.f_floor = sink.f_floor;
+  return out;
+}
+
+void expect_enu_within(const LatencyRun& r, double factor) {
+  ASSERT_GT(r.enu.n, 20000u);
   const char* names[3] = {"E", "N", "U"};
   for (int k = 0; k < 3; ++k) {
-    std::printf("%s: RMS error %.3f nT, floor %.3f nT, ratio %.3f\n", names[k], sink.enu.error(k),
-                sink.enu.floor(k), sink.enu.error(k) / sink.enu.floor(k));
-    EXPECT_LE(sink.enu.error(k), 1.05 * sink.enu.floor(k)) << names[k];
+    std::printf("%s: RMS error %.3f nT, floor %.3f nT, ratio %.3f\n", names[k], r.enu.error(k),
+                r.enu.floor(k), r.enu.error(k) / r.enu.floor(k));
+    EXPECT_LE(r.enu.error(k), factor * r.enu.floor(k)) << names[k];
   }
-  std::printf("F: RMS error %.4f nT, floor %.4f nT\n", sink.f_err.value(), sink.f_floor.value());
-  EXPECT_LE(sink.f_err.value(), 1.1 * sink.f_floor.value());
+}
+
+// The vector-ekf calibrator, told neither noise nor latency, finds the offset (its start-up fit
+// regresses the lag out before estimating the noise, and its filter takes each attitude at
+// t - tau from the INS samples, E-VF-5); the pipeline pairs the held-out samples and the records
+// at that offset. E/N/U within 1.05x of the floor (measured 1.013-1.020; without the start-up
+// regression of the lag 1.035-1.053, the offset's 1-sigma 0.30 ms instead of 0.023). Before, the
+// filter's offset came out at -9.2 +- 0.3 ms and the held-out vector check refused the candidate
+// (vector_validation_failed, `magvec run` seed 3); with the noise given, it was applied with the
+// records still paired 9.5 ms off.
+TEST(HilCalibration, VectorEkfFindsAnUnknownInsLatencyAndThePipelineAdoptsIt) {
+  using VecCal = core::VectorCalibrator<double>;
+  HilConfig hc;  // no noise figures, the default 0.5 ms latency compensation
+  auto cal = std::make_unique<VecCal>();
+  const LatencyRun r = run_unknown_latency(*cal, 2031, hc);
+  ASSERT_EQ(r.state, core::CalState::kApplied) << r.failure;
+  const double sigma_s = cal->filter().sigmas().dt_s;
+  std::printf("pipeline time offset %.3f ms (filter %.4f +- %.4f ms), truth %.3f ms\n",
+              r.pipeline_offset_s * 1e3, cal->filter().time_offset_s() * 1e3, sigma_s * 1e3,
+              -r.unknown_s * 1e3);
+  // The attitude is older than the reading: magnetometer minus INS is negative.
+  EXPECT_NEAR(cal->filter().time_offset_s(), -r.unknown_s, std::max(4 * sigma_s, 1e-4));
+  EXPECT_EQ(r.offset_steps, 1u);
+  expect_enu_within(r, 1.05);
+  std::printf("F: RMS error %.4f nT, floor %.4f nT\n", r.f_err.value(), r.f_floor.value());
+  EXPECT_LE(r.f_err.value(), 1.1 * r.f_floor.value());
 
   // An offset configured as known (magvecd ins.time_offset_s, magvec run --time-offset-s) stays.
-  Simulator sim2(sc, 2031);
-  hc.time_offset_us = -9'500;
-  hc.adopt_calibration_time_offset = false;
+  HilConfig known = hc;
+  known.time_offset_us = -9'500;
+  known.adopt_calibration_time_offset = false;
   auto cal2 = std::make_unique<VecCal>();
-  ScoringSink<VecSession> sink2(sc, rc, sc.survey.manoeuvre_s + 5.0, unknown_s);
-  auto hil2 = std::make_unique<VecSession>(sim2, rc, *cal2, sink2, hc);
-  sink2.attach(hil2.get());
-  ASSERT_EQ(hil2->init(), hal::Status::kOk);
-  hil2->run();
-  EXPECT_EQ(hil2->loop().state(), core::CalState::kApplied);
-  EXPECT_EQ(hil2->core().pipeline().time_offset_us(), -9'500);
-  EXPECT_EQ(hil2->core().pipeline().counters().time_offset_steps, 0u);
+  const LatencyRun k = run_unknown_latency(*cal2, 2031, known);
+  EXPECT_EQ(k.state, core::CalState::kApplied) << k.failure;
+  EXPECT_DOUBLE_EQ(k.pipeline_offset_s, -9.5e-3);
+  EXPECT_EQ(k.offset_steps, 0u);
   // Fed at the right pairing, the filter finds nothing left.
   EXPECT_NEAR(cal2->filter().time_offset_s(), 0.0,
               std::max(4 * cal2->filter().sigmas().dt_s, 1e-4));
 }
 
-// The same unknown latency with the in-loop Li calibrator (the default of magvecd and magvec run),
-// told no noise: its solve regresses the one-step fit's residuals on the kept samples' rates
-// (fit_time_offset, E-TO-4), refits, and the pipeline pairs the held-out samples and the records
-// at the offset it found. Measured: -9.451 ms, E/N/U 1.005-1.012x the floor. Before (and with
+// The same with the in-loop Li calibrator (the default of magvecd and magvec run), told no noise:
+// its solve regresses the one-step fit's residuals on the kept samples' rates (fit_time_offset,
+// E-TO-4), refits, and the pipeline pairs the held-out samples and the records at the offset it
+// found. Measured: -9.451 ms, E/N/U 1.005-1.012x the floor. Before (and with
 // estimate_time_offset off) the latency went into the calibration: h_n 107 nT off in East (its
 // 1-sigma 10 nT), the records at 4.3/2.2/2.1x their E/N/U floor.
 TEST(HilCalibration, LiFindsAnUnknownInsLatencyAndThePipelineAdoptsIt) {
-  using Li = core::BatchLiCalibrator<double, 512>;
-  using LiSession = HilSession<Li>;
-  ScenarioConfig sc = drivers::sim::scenario_survey();
-  sc.num_samples = static_cast<std::uint32_t>(180.0 * sc.rate_hz);
-  Simulator sim(sc, 2032);
-  SimRigConfig rc;
-  rc.link = drivers::sim::MagLink::kSpi;
-  rc.adc.transfer.nT_per_volt = {1e5, 1e5, 1e5};
-  rc.ins.can_latency_us = 10'000;
-  HilConfig hc;  // 9.5 ms unknown; no noise figures
-  const double unknown_s = 1e-6 * (rc.ins.can_latency_us - hc.ins_latency_comp_us);
   core::BatchLiCalibratorConfig<double> lc;
   lc.batch.estimate_noise = true;
-  auto cal = std::make_unique<Li>(lc);
-  ScoringSink<LiSession> sink(sc, rc, sc.survey.manoeuvre_s + 5.0, unknown_s);
-  auto hil = std::make_unique<LiSession>(sim, rc, *cal, sink, hc);
-  sink.attach(hil.get());
-  ASSERT_EQ(hil->init(), hal::Status::kOk);
-  hil->run();
-  const auto& loop = hil->loop();
-  ASSERT_EQ(loop.state(), core::CalState::kApplied)
-      << "failure " << core::cal_failure_name(loop.failure()) << " code "
-      << static_cast<int>(loop.solver_code());
-  const double offset_s = 1e-6 * static_cast<double>(hil->core().pipeline().time_offset_us());
-  std::printf("pipeline time offset %.3f ms (the solve's %.3f ms), truth %.3f ms\n", offset_s * 1e3,
-              cal->time_offset_s() * 1e3, -unknown_s * 1e3);
-  EXPECT_NEAR(offset_s, -unknown_s, 2e-4);
-  EXPECT_EQ(hil->core().pipeline().counters().time_offset_steps, 1u);
+  auto cal = std::make_unique<core::BatchLiCalibrator<double, 512>>(lc);
+  const LatencyRun r = run_unknown_latency(*cal, 2032, HilConfig{});
+  ASSERT_EQ(r.state, core::CalState::kApplied) << r.failure;
+  std::printf("pipeline time offset %.3f ms (the solve's %.3f ms), truth %.3f ms\n",
+              r.pipeline_offset_s * 1e3, cal->time_offset_s() * 1e3, -r.unknown_s * 1e3);
+  EXPECT_NEAR(r.pipeline_offset_s, -r.unknown_s, 2e-4);
+  EXPECT_EQ(r.offset_steps, 1u);
+  const ScenarioConfig sc = drivers::sim::scenario_survey();
   const core::Vec3<double> dh = cal->last_result().h_n_nT - sc.h_n_nT;
-  std::printf("h_n error %.2f %.2f %.2f nT (1-sigma %.2f %.2f %.2f)\n", dh(0), dh(1), dh(2),
-              cal->last_result().h_n_sigma_nT(0), cal->last_result().h_n_sigma_nT(1),
-              cal->last_result().h_n_sigma_nT(2));
-  ASSERT_GT(sink.enu.n, 20000u);
-  const char* names[3] = {"E", "N", "U"};
-  for (int k = 0; k < 3; ++k) {
-    std::printf("%s: RMS error %.3f nT, floor %.3f nT, ratio %.3f\n", names[k], sink.enu.error(k),
-                sink.enu.floor(k), sink.enu.error(k) / sink.enu.floor(k));
-    EXPECT_LE(sink.enu.error(k), 1.05 * sink.enu.floor(k)) << names[k];
-  }
+  const core::Vec3<double> sg = cal->last_result().h_n_sigma_nT;
+  std::printf("h_n error %.2f %.2f %.2f nT (1-sigma %.2f %.2f %.2f)\n", dh(0), dh(1), dh(2), sg(0),
+              sg(1), sg(2));
+  expect_enu_within(r, 1.05);
 }
 
 }  // namespace

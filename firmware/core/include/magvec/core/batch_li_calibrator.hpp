@@ -200,10 +200,11 @@ class BatchLiCalibrator {
   CalibratorSolve solve(SensorModel<Scalar>* out) noexcept {
     result_ = batch_.solve(cfg_.method);
     solved_ = true;
-    time_offset_s_ = 0;
     if (cfg_.estimate_time_offset && cfg_.method == BatchMethod::kOneStep) {
-      time_offset_s_ = fit_time_offset(
-          &batch_, cfg_.method, cfg_.max_time_offset_s,
+      // The store keeps the moved attitudes: a second solve adds to the first's move.
+      time_offset_s_ += fit_time_offset(
+          &batch_, cfg_.method,
+          std::max(cfg_.max_time_offset_s - std::abs(time_offset_s_), Scalar(0)),
           [this](std::size_t i) noexcept { return omega_[i]; }, &result_);
     }
     if (!result_.ok()) return CalibratorSolve{false, static_cast<std::uint8_t>(result_.verdict)};
@@ -217,7 +218,8 @@ class BatchLiCalibrator {
     if (time_offset_s_ != 0) r.time_offset_correction_s = static_cast<float>(time_offset_s_);
     return r;
   }
-  // The time offset the last solve found relative to the pairing it was fed (0: none or not seen).
+  // The time offset the solves found relative to the pairing the calibrator was fed (0: none or
+  // not seen); the store's attitudes are moved by it.
   Scalar time_offset_s() const noexcept { return time_offset_s_; }
 
   // --- diagnostics ------------------------------------------------------------------------------

@@ -295,6 +295,13 @@ class SamplePipeline {
     }
     head_ = (head_ + 1) % QueueCapacity;
     --count_;
+    // Paired as a candidate was fitted (or back, when refused) from the first sample after its
+    // solve, whether the solve ran inline (in the previous sample) or was installed between.
+    const std::int64_t step = loop_.take_time_offset_step_us();
+    if (step != 0 && config_.adopt_calibration_time_offset) {
+      config_.time_offset_us += step;
+      ++counters_.time_offset_steps;
+    }
     const std::uint64_t tq = attitude_time_us(s.t_us);
     if (!(have_ins_ && ins_seen_us_ >= tq)) ++counters_.horizon_expired;
     const AttitudeQuery<Scalar> q = buffer_.at(tq);
@@ -309,12 +316,6 @@ class SamplePipeline {
     }
     ++counters_.records;
     emit(rec);
-    // From the next sample on, paired as the candidate was fitted (or back, when refused).
-    const std::int64_t step = loop_.take_time_offset_step_us();
-    if (step != 0 && config_.adopt_calibration_time_offset) {
-      config_.time_offset_us += step;
-      ++counters_.time_offset_steps;
-    }
   }
 
   PipelineConfig<Scalar> config_;

@@ -421,11 +421,12 @@ TEST_F(Calibrate, TheEstimatedTimeOffsetIsStoredAndApplied) {
 // apply` computes with the stored calibration (its own slerp of the recorded attitudes) sit at the
 // floor computed from the simulator's true attitude and field. Before the filter took the attitude
 // at t - dt from the INS samples, it rotated the attitude by dt times a rate differenced from noisy
-// attitudes: the offset came out at -9.58 +- 0.01 ms (fails both offset checks; the outputs then
-// average two INS samples, 1.04-1.07x their floor) and calibrate's own E/N/U figures, rotated the
-// same way, were 70 % above those of the batch fit.
+// attitudes: on 20 000 samples (this test's first length; 12 000 keep the sanitizer run short)
+// the offset came out at -9.58 +- 0.01 ms (fails both offset checks; the outputs then average two
+// INS samples, 1.05-1.07x their floor) and calibrate's own E/N/U figures, rotated the same way,
+// were 70 % above those of the batch fit.
 TEST_F(Calibrate, VectorEkfFindsAnUnknownInsLatencyAndItsOutputsReachTheTrueFloor) {
-  ASSERT_EQ(run("simulate --scenario survey --samples 20000 --ins-latency-s 0.01 --seed 5 --out " +
+  ASSERT_EQ(run("simulate --scenario survey --samples 12000 --ins-latency-s 0.01 --seed 5 --out " +
                 file("sv.csv"))
                 .status,
             0);
@@ -471,7 +472,7 @@ TEST_F(Calibrate, VectorEkfFindsAnUnknownInsLatencyAndItsOutputsReachTheTrueFloo
     const Vec3<double> h_true(sim.value(he), sim.value(hn), sim.value(hu));
     acc.add(h_out, r_true, h_true, sc.truth, sc.mag_noise_nT, sc.ins_noise_deg, f);
   }
-  ASSERT_GT(acc.n, 19900U);
+  ASSERT_GT(acc.n, 11900U);
   for (int k = 0; k < 3; ++k) {
     const double err = std::sqrt(acc.err_sum_sq[k] / static_cast<double>(acc.n));
     const double floor = std::sqrt(acc.var_sum[k] / static_cast<double>(acc.n));

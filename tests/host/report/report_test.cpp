@@ -516,7 +516,7 @@ TEST_F(ReportData, SimulationTruthFromTheFileHeader) {
 // truth; the final estimates are scored against that truth in the page. On a survey with an
 // unknown 10 ms INS latency every state lies within 4 of its 1-sigmas of the truth.
 TEST_F(ReportCli, VectorEkfTraceStatesWithTheirBandsAndTheTruth) {
-  ASSERT_EQ(magvec("simulate --scenario survey --samples 20000 --ins-latency-s 0.01 --seed 7 "
+  ASSERT_EQ(magvec("simulate --scenario survey --samples 12000 --ins-latency-s 0.01 --seed 7 "
                    "--out " +
                    file("sv.csv"))
                 .status,

@@ -183,6 +183,8 @@ class VectorCalibrator {
     counts_ = VectorCalibratorCounts{};
     hold_n_ = 0;
     hold_done_ = 0;
+    att_ = AttitudeBuffer<Scalar, static_cast<std::size_t>(HoldCapacity)>(
+        hold_buffer_config(cfg_.max_rate_span_s));
     n_kept_ = 0;
     noise_batch_.reset();
     noise_step_deg_ = cfg_.filter.init_min_rotation_deg;
@@ -501,7 +503,21 @@ class VectorCalibrator {
     return static_cast<std::int64_t>(t_us) -
            static_cast<std::int64_t>(std::lround(a_s * Scalar(1e6)));
   }
-  bool attitude_at(std::int64_t t_us, Mat3<Scalar>* r) const noexcept;
+  // R_bn at t_us interpolated between the held attitudes (the pipeline's AttitudeBuffer, kept
+  // alongside the ring: bracketing attitudes at most max_rate_span_s apart); false outside them.
+  bool attitude_at(std::int64_t t_us, Mat3<Scalar>* r) const noexcept {
+    if (t_us < 0) return false;
+    const AttitudeQuery<Scalar> q = att_.at(static_cast<std::uint64_t>(t_us));
+    if (q.status != AttitudeQueryStatus::kInterpolated) return false;
+    *r = r_bn_from_quat(q.q_nb);
+    return true;
+  }
+  static AttitudeBufferConfig hold_buffer_config(Scalar max_span_s) noexcept {
+    AttitudeBufferConfig c;
+    c.max_gap_us = static_cast<std::uint64_t>(std::lround(max_span_s * Scalar(1e6)));
+    c.max_extrapolation_us = 0;  // nothing past the newest held sample
+    return c;
+  }
   bool ready_to_process(int i) const noexcept;
   CalibratorAdd process_held(int i) noexcept;
   CalibratorAdd flush_held() noexcept;
@@ -509,6 +525,8 @@ class VectorCalibrator {
   int hold_head_{0};
   int hold_n_{0};     // entries in the ring
   int hold_done_{0};  // the oldest hold_done_ entries are processed (history)
+  AttitudeBuffer<Scalar, static_cast<std::size_t>(HoldCapacity)> att_{
+      hold_buffer_config(Scalar(0.5))};
 };
 
 template <typename Scalar, int InitCapacity, int ReplayCapacity, int HoldCapacity>
@@ -527,6 +545,7 @@ CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacit
     (void)flush_held();
     hold_n_ = 0;
     hold_done_ = 0;
+    att_.clear();
     return CalibratorAdd::kRejected;
   }
   // Collecting for the noise estimate needs a reference now (the held sample would say so late).
@@ -541,6 +560,7 @@ CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacit
     out = flush_held();
     hold_n_ = 0;
     hold_done_ = 0;
+    att_.clear();
   }
   if (hold_n_ == HoldCapacity) {
     // Full: the oldest unprocessed sample goes now; the oldest entry makes room.
@@ -559,37 +579,9 @@ CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacit
     h.v.interval_s = static_cast<Scalar>(s.t_us - held(hold_n_ - 1).t_us) * Scalar(1e-6);
   held(hold_n_) = h;
   ++hold_n_;
+  (void)att_.insert(s.t_us, quat_from_r_bn(*r_bn));
   if (hold_done_ < hold_n_ && ready_to_process(hold_done_)) out = process_held(hold_done_);
   return out;
-}
-
-// R_bn at t_us, slerped between the two ring attitudes that bracket it (at most max_rate_span_s
-// apart); false outside the ring.
-template <typename Scalar, int InitCapacity, int ReplayCapacity, int HoldCapacity>
-bool VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacity>::attitude_at(
-    std::int64_t t_us, Mat3<Scalar>* r) const noexcept {
-  int lo = 0, hi = hold_n_;  // first entry at or after t_us
-  while (lo < hi) {
-    const int mid = (lo + hi) / 2;
-    if (static_cast<std::int64_t>(held(mid).t_us) < t_us)
-      lo = mid + 1;
-    else
-      hi = mid;
-  }
-  if (lo == hold_n_) return false;
-  const Held& b = held(lo);
-  if (static_cast<std::int64_t>(b.t_us) == t_us) {
-    *r = b.v.r_bn;
-    return true;
-  }
-  if (lo == 0) return false;
-  const Held& a = held(lo - 1);
-  const Scalar span = static_cast<Scalar>(b.t_us - a.t_us) * Scalar(1e-6);
-  if (!(span <= cfg_.max_rate_span_s)) return false;
-  const Scalar f =
-      static_cast<Scalar>(t_us - static_cast<std::int64_t>(a.t_us)) * Scalar(1e-6) / span;
-  *r = slerp_unit(Quat<Scalar>(a.v.r_bn), Quat<Scalar>(b.v.r_bn), f).toRotationMatrix();
-  return true;
 }
 
 // The ring reaches rate_half_span_s past the attitude time the sample needs.

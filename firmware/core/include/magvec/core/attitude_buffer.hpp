@@ -214,6 +214,12 @@ class AttitudeBuffer {
     head_ = 0;
     size_ = 0;
   }
+  // Empty, with a new configuration and zero counters.
+  void reset(const AttitudeBufferConfig& config) noexcept {
+    config_ = config;
+    counters_ = AttitudeBufferCounters{};
+    clear();
+  }
   std::size_t size() const noexcept { return size_; }
   static constexpr std::size_t capacity() noexcept { return Capacity; }
   std::uint64_t oldest_us() const noexcept { return size_ ? time_at(0) : 0; }

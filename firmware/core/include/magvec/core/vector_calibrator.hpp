@@ -183,8 +183,7 @@ class VectorCalibrator {
     counts_ = VectorCalibratorCounts{};
     hold_n_ = 0;
     hold_done_ = 0;
-    att_ = AttitudeBuffer<Scalar, static_cast<std::size_t>(HoldCapacity)>(
-        hold_buffer_config(cfg_.max_rate_span_s));
+    att_.reset(hold_buffer_config(cfg_.max_rate_span_s));
     n_kept_ = 0;
     noise_batch_.reset();
     noise_step_deg_ = cfg_.filter.init_min_rotation_deg;

@@ -1117,8 +1117,7 @@ TEST_F(MagvecdVm, CalibratesAppliesAndPersists) {
 // model's field here, but a survey site has anomalies the model does not know).
 TEST_F(MagvecdVm, ReferenceFieldFromTheModelAtTheInsPositionOnTheBus) {
   const std::string& log = g_run.daemon_stderr;
-  EXPECT_NE(log.find("reference field from wmm2025 at the INS position"), std::string::npos)
-      << log;
+  EXPECT_NE(log.find("reference field from wmm2025 at the INS position"), std::string::npos) << log;
   const std::size_t announced = log.find("reference field: WMM2025 at 47.9000 N 11.3000 E 647 m");
   EXPECT_NE(announced, std::string::npos) << log;
   const double sigma_model = magvec::host::daemon::PositionReference::sigma_nT();
@@ -1129,11 +1128,13 @@ TEST_F(MagvecdVm, ReferenceFieldFromTheModelAtTheInsPositionOnTheBus) {
     flagged += (o.flags & magvec::core::kOutModelReference) != 0 ? 1 : 0;
     with_sigma += o.sigma_f >= sigma_model ? 1 : 0;
   }
-  std::printf("model F %.1f nT at the site (%s, %.4f); %zu calibrated outputs, %zu flagged "
-              "model-referenced, %zu with sigma_f >= %.0f nT\n",
-              site_field().total_nT, site_field().model.c_str(), site_field().decimal_year,
-              calibrated, flagged, with_sigma, sigma_model);
-  if (calibrated == 0) GTEST_SKIP() << "no calibration applied (judged in CalibratesAppliesAndPersists)";
+  std::printf(
+      "model F %.1f nT at the site (%s, %.4f); %zu calibrated outputs, %zu flagged "
+      "model-referenced, %zu with sigma_f >= %.0f nT\n",
+      site_field().total_nT, site_field().model.c_str(), site_field().decimal_year, calibrated,
+      flagged, with_sigma, sigma_model);
+  if (calibrated == 0)
+    GTEST_SKIP() << "no calibration applied (judged in CalibratesAppliesAndPersists)";
   EXPECT_EQ(flagged, calibrated);
   EXPECT_EQ(with_sigma, calibrated);
 }

@@ -266,6 +266,12 @@ CalibrationFile run_batch_method(const CalibrateOptions& o, core::BatchMethod me
       std::cout << "    h_n nT (E,N,U) " << pm3(r.h_n_nT, r.h_n_sigma_nT, 2) << ", |h_n| "
                 << fixed(r.h_n_nT.norm(), 2) << "\n";
     }
+    if (std::isfinite(r.calibration_sigma_enu_nT)) {
+      std::cout << "    calibration's own 1-sigma over the survey envelope (every heading at the "
+                   "data's tilts): E/N/U "
+                << fixed(r.calibration_sigma_enu_nT, 3) << " nT per axis, |h| "
+                << fixed(r.calibration_sigma_f_nT, 3) << " nT\n";
+    }
     const core::GeParams<double> ge = core::to_ge(r.model);
     std::cout << "  Ge 2017 form: C^-1 = " << mat3(ge.c_inv, 6) << ", b = " << vec3(ge.b, 3)
               << " nT\n";

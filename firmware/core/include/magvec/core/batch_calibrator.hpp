@@ -104,6 +104,11 @@ struct BatchResult {
   bool has_h_n = false;
   Vec3<Scalar> h_n_nT = Vec3<Scalar>::Zero();
   Vec3<Scalar> h_n_sigma_nT = Vec3<Scalar>::Zero();
+  // One-step: what the parameters' covariance does to the outputs over the survey envelope of the
+  // data's tilts (E-Acc-3): per-axis RMS of the E/N/U error and RMS of the |h| error; NaN for the
+  // two-step method.
+  Scalar calibration_sigma_enu_nT = std::numeric_limits<Scalar>::quiet_NaN();
+  Scalar calibration_sigma_f_nT = std::numeric_limits<Scalar>::quiet_NaN();
   bool heading_fixed = false;
   bool converged = false;
   Scalar cost{0};  // one-step: chi^2 (+ prior term) at the solution
@@ -584,6 +589,8 @@ BatchResult<Scalar> BatchCalibrator<Scalar, Capacity>::solve(BatchMethod method)
     res.sigma = os.sigma;
     res.h_n_nT = os.h_n;
     res.h_n_sigma_nT = os.h_n_sigma;
+    res.calibration_sigma_enu_nT = os.calibration_sigma_enu_nT;
+    res.calibration_sigma_f_nT = os.calibration_sigma_f_nT;
     res.has_h_n = true;
     res.cost = os.cost;
     res.converged = os.converged;

@@ -216,6 +216,10 @@ class BatchLiCalibrator {
     r.mag_noise_nT = static_cast<float>(result_.noise.estimated ? result_.noise.mag_nT
                                                                 : cfg_.batch.mag_noise_nT);
     if (time_offset_s_ != 0) r.time_offset_correction_s = static_cast<float>(time_offset_s_);
+    // The one-step fit's own 1-sigma of the outputs (E-Acc-3): the loop combines it with the noise
+    // in the records' floors (NaN for the two-step method: none).
+    r.calibration_sigma_f_nT = static_cast<float>(result_.calibration_sigma_f_nT);
+    r.calibration_sigma_enu_nT = static_cast<float>(result_.calibration_sigma_enu_nT);
     return r;
   }
   // The time offset the solves found relative to the pairing the calibrator was fed (0: none or

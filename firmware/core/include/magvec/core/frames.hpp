@@ -133,6 +133,14 @@ Scalar rotation_angle_between(const Mat3<Scalar>& r_a, const Mat3<Scalar>& r_b) 
 
 // Rotation rate in n-frame axes from a body rate (gyro): Omega = R_bn^T omega_b (E-TO-1; the vector
 // filter E-VF-5).
+// Active rotation matrix of a rotation vector v = a k (Rodrigues): Exp(a [k x]).
+template <typename Scalar>
+Mat3<Scalar> exp_so3(const Vec3<Scalar>& v) noexcept {
+  const Scalar a = v.norm();
+  if (!(a > Scalar(0))) return Mat3<Scalar>::Identity();
+  return Eigen::AngleAxis<Scalar>(a, v / a).toRotationMatrix();
+}
+
 template <typename Scalar>
 Vec3<Scalar> rate_n_from_body(const Mat3<Scalar>& r_bn, const Vec3<Scalar>& omega_b) noexcept {
   return r_bn.transpose() * omega_b;

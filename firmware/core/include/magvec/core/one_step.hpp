@@ -25,6 +25,7 @@
 
 #include "magvec/core/ellipsoid_fit.hpp"
 #include "magvec/core/misalignment.hpp"
+#include "magvec/core/output_envelope.hpp"
 #include "magvec/core/sample_store.hpp"
 #include "magvec/core/sensor_model.hpp"
 #include "magvec/core/types.hpp"
@@ -104,6 +105,12 @@ struct OneStepSolution {
   Scalar attitude_noise_sigma_rad{0};
   // RMS of the normalised residuals over their median-based scale (1 for Gaussian residuals).
   Scalar tail_ratio{0};
+  // What the parameters' covariance does to the outputs over the survey envelope of the data's
+  // tilts (OneStepFit::output_uncertainty): per-axis RMS of the E/N/U error and RMS of the |h|
+  // error [nT]; NaN when not evaluated.
+  Scalar calibration_sigma_enu_nT = std::numeric_limits<Scalar>::quiet_NaN();
+  Scalar calibration_sigma_f_nT = std::numeric_limits<Scalar>::quiet_NaN();
+  std::uint32_t envelope_attitudes{0};
   // Bit k (parameter index kIdx*): its 1-sigma exceeds the "determined" limit.
   std::uint32_t undetermined{0};
   // With a prior: bit k of `updated` when the data determine parameter k (posterior 1-sigma below
@@ -296,6 +303,7 @@ class OneStepFit {
     const Mat3<Scalar> cov_h =
         tb * cov.template block<2, 2>(kIdxDir, kIdxDir) * tb.transpose() * (fmean * fmean);
     out.h_n_sigma = cov_h.diagonal().cwiseMax(Scalar(0)).cwiseSqrt();
+    output_uncertainty(store, norm, p, cov, fmean / norm.scale, &out);
 
     // What the data determine: 1-sigma against the parameter's natural size.
     for (int k = 0; k < kParams; ++k) {
@@ -430,29 +438,88 @@ class OneStepFit {
     return converged;
   }
 
+  // What the residual's Jacobian needs of the parameters, once per pass.
+  struct Linearisation {
+    Vec3<Scalar> ks, t1, t2;  // t1, t2: tangent basis at the direction of h_n
+    Mat3<Scalar> ko, w, rmt;  // W = (Ks Ko)^-1, Rm^T
+    std::array<Mat3<Scalar>, 3> drmt;
+    Vec3<Scalar> dko1, dko2, dko3;  // the non-zero rows of dKo/dO_k
+  };
+  static Linearisation linearisation(const Params& prm) noexcept {
+    using std::cos;
+    using std::sin;
+    Linearisation lz;
+    const Vec3<Scalar>& o_rad = prm.o_rad;
+    lz.ks = prm.ks;
+    tangent_basis(prm.d, &lz.t1, &lz.t2);
+    lz.ko = li_ko(o_rad);
+    lz.w = (prm.ks.asDiagonal() * lz.ko).inverse();
+    std::array<Mat3<Scalar>, 3> drm;
+    lz.rmt = li_rm_with_derivatives(prm.rm, &drm).transpose();
+    for (std::size_t k = 0; k < 3; ++k)
+      lz.drmt[k] = drm[k].transpose();
+    // Rows of dKo/dO_k that are non-zero: O1 -> row z, O2 and O3 -> row y.
+    lz.dko1 = Vec3<Scalar>(cos(o_rad(0)), 0, -sin(o_rad(0)));
+    lz.dko2 =
+        Vec3<Scalar>(-sin(o_rad(1)) * sin(o_rad(2)), -sin(o_rad(1)) * cos(o_rad(2)), cos(o_rad(1)));
+    lz.dko3 = Vec3<Scalar>(cos(o_rad(1)) * cos(o_rad(2)), -cos(o_rad(1)) * sin(o_rad(2)), 0);
+    return lz;
+  }
+  // Jacobian of one sample's residual r = R^T Rm^T W (m - Kof) - F d (E-Li-6) with respect to the
+  // parameters, at hs = W (m - Kof) (normalised), pm = R^T Rm^T W and fn = F (normalised).
+  static Mat<Scalar, 3, kParams> jacobian(const Linearisation& lz, const Mat3<Scalar>& r,
+                                          const Mat3<Scalar>& pm, const Vec3<Scalar>& hs,
+                                          Scalar fn) noexcept {
+    Mat<Scalar, 3, kParams> j;
+    for (int k = 0; k < 3; ++k)
+      j.col(kIdxKs + k) = -pm.col(k) * lz.ko.row(k).dot(hs);
+    j.col(kIdxO + 0) = -pm.col(2) * (lz.ks(2) * lz.dko1.dot(hs));
+    j.col(kIdxO + 1) = -pm.col(1) * (lz.ks(1) * lz.dko2.dot(hs));
+    j.col(kIdxO + 2) = -pm.col(1) * (lz.ks(1) * lz.dko3.dot(hs));
+    j.template block<3, 3>(0, kIdxKof) = -pm;
+    for (int k = 0; k < 3; ++k)
+      j.col(kIdxRm + k) = r.transpose() * (lz.drmt[static_cast<std::size_t>(k)] * hs);
+    j.col(kIdxDir) = -fn * lz.t1;
+    j.col(kIdxDir + 1) = -fn * lz.t2;
+    return j;
+  }
+
+  // What the calibration's uncertainty (the covariance of Ks, O, Kof, Rm; normalised units) does
+  // to the outputs over the survey envelope of the store's tilts (output_envelope.hpp, E-Acc-3):
+  // per-axis RMS of the E/N/U error and RMS of the |h| error [nT]. The output is the residual's
+  // first term, so its Jacobian is the residual's without the direction columns, at the reading
+  // the fitted model predicts for the field F d there.
+  static void output_uncertainty(SampleView<Scalar> store, const Normalization<Scalar>& norm,
+                                 const Params& prm, const MatP& cov, Scalar fn,
+                                 OneStepSolution<Scalar>* out) noexcept {
+    constexpr int kCal = kIdxDir;
+    TiltMoments<Scalar> tilts;
+    for (std::size_t i = 0; i < store.size(); ++i)
+      if (detail::usable(store[i])) tilts.add(store[i].r_bn());
+    const Linearisation lz = linearisation(prm);
+    const Vec3<Scalar> hn = fn * prm.d;
+    EnvelopeGram<Scalar, kCal> gram;
+    for_each_envelope_attitude(tilts, [&](const Mat3<Scalar>& r) {
+      const Mat3<Scalar> pm = r.transpose() * lz.rmt * lz.w;
+      const Vec3<Scalar> hs = lz.rmt.transpose() * (r * hn);  // R^T Rm^T hs = F d
+      gram.add(Mat<Scalar, 3, kCal>(jacobian(lz, r, pm, hs, fn).template leftCols<kCal>()), prm.d);
+    });
+    if (gram.n == 0) return;
+    const Mat<Scalar, kCal, kCal> c = cov.template topLeftCorner<kCal, kCal>();
+    out->envelope_attitudes = static_cast<std::uint32_t>(gram.n);
+    out->calibration_sigma_enu_nT = norm.scale * gram.vector_rms(c.cwiseProduct(gram.gv).sum());
+    out->calibration_sigma_f_nT = norm.scale * gram.intensity_rms(c.cwiseProduct(gram.gi).sum());
+  }
+
   // One pass over the samples: normal matrix, gradient, chi^2, variance-component sums and the
   // histogram of |r_w|^2. Public for benchmarks and tests.
   static PassSums pass(SampleView<Scalar> store, const Normalization<Scalar>& norm,
                        const Params& prm, const Params& wprm, Scalar sm, Scalar sa2,
                        AttitudeNoiseModel model) noexcept {
-    using std::cos;
-    using std::sin;
     PassSums out;
-    const Vec3<Scalar>&ks = prm.ks, &o_rad = prm.o_rad, &u = prm.u, &d = prm.d;
-    Vec3<Scalar> t1, t2;
-    tangent_basis(d, &t1, &t2);
-    const Mat3<Scalar> ko = li_ko(o_rad);
-    const Mat3<Scalar> w = (ks.asDiagonal() * ko).inverse();
-    std::array<Mat3<Scalar>, 3> drm;
-    const Mat3<Scalar> rmt = li_rm_with_derivatives(prm.rm, &drm).transpose();
-    std::array<Mat3<Scalar>, 3> drmt;
-    for (std::size_t k = 0; k < 3; ++k)
-      drmt[k] = drm[k].transpose();
-    // Rows of dKo/dO_k that are non-zero: O1 -> row z, O2 and O3 -> row y.
-    const Vec3<Scalar> dko1(cos(o_rad(0)), 0, -sin(o_rad(0)));
-    const Vec3<Scalar> dko2(-sin(o_rad(1)) * sin(o_rad(2)), -sin(o_rad(1)) * cos(o_rad(2)),
-                            cos(o_rad(1)));
-    const Vec3<Scalar> dko3(cos(o_rad(1)) * cos(o_rad(2)), -cos(o_rad(1)) * sin(o_rad(2)), 0);
+    const Linearisation lz = linearisation(prm);
+    const Vec3<Scalar>&u = prm.u, &d = prm.d;
+    const Mat3<Scalar>&w = lz.w, &rmt = lz.rmt;
     // Weights: the covariance at wprm (frozen during a damped run).
     const Mat3<Scalar> w_cov =
         li_rm(wprm.rm).transpose() * (wprm.ks.asDiagonal() * li_ko(wprm.o_rad)).inverse();
@@ -469,17 +536,7 @@ class OneStepFit {
       const Vec3<Scalar> hn = fn * d;
       const Vec3<Scalar> hw = fn * wprm.d;
       const Vec3<Scalar> res = mt * hs - hn;
-      Mat<Scalar, 3, kParams> j;
-      for (int k = 0; k < 3; ++k)
-        j.col(kIdxKs + k) = -pm.col(k) * ko.row(k).dot(hs);
-      j.col(kIdxO + 0) = -pm.col(2) * (ks(2) * dko1.dot(hs));
-      j.col(kIdxO + 1) = -pm.col(1) * (ks(1) * dko2.dot(hs));
-      j.col(kIdxO + 2) = -pm.col(1) * (ks(1) * dko3.dot(hs));
-      j.template block<3, 3>(0, kIdxKof) = -pm;
-      for (int k = 0; k < 3; ++k)
-        j.col(kIdxRm + k) = r.transpose() * (drmt[static_cast<std::size_t>(k)] * hs);
-      j.col(kIdxDir) = -fn * t1;
-      j.col(kIdxDir + 1) = -fn * t2;
+      const Mat<Scalar, 3, kParams> j = jacobian(lz, r, pm, hs, fn);
       // Residual covariance: sm^2 P P^T + sa^2 C C^T (C: the attitude-noise directions).
       Mat3<Scalar> c;
       if (model == AttitudeNoiseModel::kLiEuler) {

@@ -35,8 +35,8 @@
 #include "magvec/core/frames.hpp"
 #include "magvec/core/misalignment.hpp"
 #include "magvec/core/one_step.hpp"
+#include "magvec/core/output_envelope.hpp"
 #include "magvec/core/sensor_model.hpp"
-#include "magvec/core/symmetric_eigen.hpp"
 #include "magvec/core/types.hpp"
 #include "magvec/core/ud_factor.hpp"
 
@@ -319,8 +319,6 @@ class VectorCalibrationFilter {
                                                             8, 9, 10, 11, 16, 17, 18};
   static_assert(kRm0 + 3 == 12 && kTc0 == 16);
   using CalMat = Mat<Scalar, kCalStates, kCalStates>;
-  // Headings of the output envelope (E-VF-10).
-  static constexpr int kEnvelopeHeadings = 8;
   // Running means of E-VF-10 stop growing their count here: past it they are moving averages
   // (float32 sums of 2^24 terms would stop moving).
   static constexpr std::uint32_t kStatsCountCap = 1u << 20;
@@ -402,9 +400,7 @@ class VectorCalibrationFilter {
     u_.setIdentity();
     d_.setOnes();
     held_.fill(false);
-    tilt_n_ = 0;
-    tilt_mean_.setZero();
-    tilt_m2_.setZero();
+    tilts_.reset();
     tilt_released_ = false;
     reset_windows();
     nz_n_ = 0;
@@ -835,31 +831,18 @@ class VectorCalibrationFilter {
   // ---- tilt spread and the heading rule
   // ----------------------------------------------------------
   void note_tilt(const Mat3<Scalar>& r) noexcept {
-    const Vec3<Scalar> u = r.col(2);  // Up in body axes: R_bn e3
-    ++tilt_n_;
-    const Vec3<Scalar> delta = u - tilt_mean_;
-    tilt_mean_ += delta / static_cast<Scalar>(tilt_n_);
-    tilt_m2_ += delta * (u - tilt_mean_).transpose();
+    tilts_.add(r);
     if (running_ && !tilt_released_) {
       update_tilt_release();
       if (tilt_released_) held_[kRmHeading] = false;
     }
   }
-  Scalar tilt_spread_rad() const noexcept {
-    if (tilt_n_ < 2) return Scalar(0);
-    return std::sqrt(std::max(tilt_m2_.trace() / static_cast<Scalar>(tilt_n_), Scalar(0)));
-  }
+  Scalar tilt_spread_rad() const noexcept { return tilts_.spread_rad(); }
   void update_tilt_release() noexcept {
     if (tilt_spread_rad() >= deg_to_rad(cfg_.min_tilt_spread_deg)) tilt_released_ = true;
   }
 
   // ---- measurement model ---------------------------------------------------------------------
-  // Exp(a [k x]) for a rotation vector v = a k (Rodrigues; active).
-  static Mat3<Scalar> exp_so3(const Vec3<Scalar>& v) noexcept {
-    const Scalar a = v.norm();
-    if (!(a > Scalar(0))) return Mat3<Scalar>::Identity();
-    return Eigen::AngleAxis<Scalar>(a, v / a).toRotationMatrix();
-  }
   static Mat3<Scalar> skew(const Vec3<Scalar>& v) noexcept {
     Mat3<Scalar> s;
     s << Scalar(0), -v(2), v(1), v(2), Scalar(0), -v(0), -v(1), v(0), Scalar(0);
@@ -1269,9 +1252,7 @@ class VectorCalibrationFilter {
   Quat<Scalar> settle_rm_ = Quat<Scalar>::Identity();
   StateMat settle_p_ = StateMat::Zero();
   // Tilt statistics of the body-frame vertical (Welford).
-  std::uint32_t tilt_n_ = 0;
-  Vec3<Scalar> tilt_mean_ = Vec3<Scalar>::Zero();
-  Mat3<Scalar> tilt_m2_ = Mat3<Scalar>::Zero();
+  TiltMoments<Scalar> tilts_{};
   bool tilt_released_ = false;
   // Divergence windows.
   int window_n_ = 0;
@@ -1404,22 +1385,7 @@ template <typename Scalar, int kInitCapacity, int kReplayCapacity>
 VfOutputUncertainty<Scalar> VectorCalibrationFilter<
     Scalar, kInitCapacity, kReplayCapacity>::output_uncertainty() const noexcept {
   VfOutputUncertainty<Scalar> o;
-  if (!running_ || tilt_n_ < 1) return o;
-  // The envelope (E-VF-10): body verticals u that reproduce the mean and covariance of those seen
-  // since the start (mean +- sqrt(3 lambda_k) e_k, weights 1/6), each at kEnvelopeHeadings headings
-  // (exact for the heading average of the quartic terms below).
-  const Mat3<Scalar> cov_u =
-      tilt_n_ > 1 ? Mat3<Scalar>(tilt_m2_ / static_cast<Scalar>(tilt_n_)) : Mat3<Scalar>::Zero();
-  Vec3<Scalar> ev;
-  Mat3<Scalar> evec;
-  if (!symmetric_eigen_jacobi<Scalar, 3>(cov_u, &ev, &evec)) return o;
-  std::array<Vec3<Scalar>, 6> tilts;
-  for (std::size_t k = 0; k < 3; ++k) {
-    const int c = static_cast<int>(k);
-    const Vec3<Scalar> d = std::sqrt(Scalar(3) * std::max(ev(c), Scalar(0))) * evec.col(c);
-    tilts[2 * k] = tilt_mean_ + d;
-    tilts[2 * k + 1] = tilt_mean_ - d;
-  }
+  if (!running_ || tilts_.count() < 1) return o;
   const StateVec xf = full();
   Mat3<Scalar> wm = Mat3<Scalar>::Zero();
   for (int k = 0; k < kWEntries; ++k)
@@ -1430,52 +1396,35 @@ VfOutputUncertainty<Scalar> VectorCalibrationFilter<
   const Vec3<Scalar> h_n = xf.template segment<3>(kHn0);
   const Scalar dtemp = delta_t(kNaN);
   const Vec3<Scalar> o_t = xf.template segment<3>(kO0) + xf.template segment<3>(kTc0) * dtemp;
-  CalMat gv = CalMat::Zero(), gi = CalMat::Zero();
+  // The envelope (output_envelope.hpp, E-VF-10) of the tilts seen since the start.
+  EnvelopeGram<Scalar, kCalStates> gram;
   Scalar nv{0}, ni{0};
-  int n = 0;
-  for (const Vec3<Scalar>& t_raw : tilts) {
-    const Scalar tn = t_raw.norm();
-    const Vec3<Scalar> u = tn > Scalar(0) ? Vec3<Scalar>(t_raw / tn) : Vec3<Scalar>::UnitZ();
-    // T: the rotation taking the n-frame vertical e3 to u (R_bn = T Rz(psi) has R_bn e3 = u).
-    const Vec3<Scalar> ax = Vec3<Scalar>::UnitZ().cross(u);
-    const Scalar sa = ax.norm();
-    const Scalar angle = std::atan2(sa, u(2));
-    Mat3<Scalar> t = Mat3<Scalar>::Identity();
-    if (sa > Scalar(0)) {
-      t = exp_so3(Vec3<Scalar>(ax * (angle / sa)));
-    } else if (u(2) < Scalar(0)) {
-      t = exp_so3(Vec3<Scalar>(kPi<Scalar>, Scalar(0), Scalar(0)));
-    }
-    for (int k = 0; k < kEnvelopeHeadings; ++k) {
-      const Scalar psi =
-          Scalar(2) * kPi<Scalar> * static_cast<Scalar>(k) / static_cast<Scalar>(kEnvelopeHeadings);
-      const Mat3<Scalar> r = t * exp_so3(Vec3<Scalar>(Scalar(0), Scalar(0), psi));
-      // The raw reading the current model predicts there (normalised), no rate: the output's
-      // dependence on the calibration states only.
-      Prepared p;
-      p.m = w_inv * (rm * (r * h_n)) + o_t;
-      p.r = r;
-      p.omega.setZero();
-      p.f = kNaN;
-      p.dtemp = dtemp;
-      Vec3<Scalar> rw;
-      Mat<Scalar, 3, kStates> hw;
-      LinExtras ex;
-      if (!linearise(p, &rw, &hw, &ex)) continue;
-      Mat<Scalar, 3, kCalStates> hc;
-      for (int i = 0; i < kCalStates; ++i)
-        hc.col(i) = ex.h.col(kCalIndex[static_cast<std::size_t>(i)]);
-      const Scalar gn = ex.g.norm();
-      if (!(gn > Scalar(0))) continue;
-      const Vec3<Scalar> g_dir = ex.g / gn;
-      const Vec<Scalar, kCalStates> hi = hc.transpose() * g_dir;
-      gv.noalias() += hc.transpose() * hc;
-      gi.noalias() += hi * hi.transpose();
-      nv += ex.cov.trace();
-      ni += g_dir.dot(ex.cov * g_dir);
-      ++n;
-    }
-  }
+  for_each_envelope_attitude(tilts_, [&](const Mat3<Scalar>& r) {
+    // The raw reading the current model predicts there (normalised), no rate: the output's
+    // dependence on the calibration states only.
+    Prepared p;
+    p.m = w_inv * (rm * (r * h_n)) + o_t;
+    p.r = r;
+    p.omega.setZero();
+    p.f = kNaN;
+    p.dtemp = dtemp;
+    Vec3<Scalar> rw;
+    Mat<Scalar, 3, kStates> hw;
+    LinExtras ex;
+    if (!linearise(p, &rw, &hw, &ex)) return;
+    Mat<Scalar, 3, kCalStates> hc;
+    for (int i = 0; i < kCalStates; ++i)
+      hc.col(i) = ex.h.col(kCalIndex[static_cast<std::size_t>(i)]);
+    const Scalar gn = ex.g.norm();
+    if (!(gn > Scalar(0))) return;
+    const Vec3<Scalar> g_dir = ex.g / gn;
+    gram.add(hc, g_dir);
+    nv += ex.cov.trace();
+    ni += g_dir.dot(ex.cov * g_dir);
+  });
+  const int n = gram.n;
+  const CalMat& gv = gram.gv;
+  const CalMat& gi = gram.gi;
   if (n == 0) return o;
   o.attitudes = static_cast<std::uint32_t>(n);
   // tr(P_cc G) = sum_k D_k u_k^T G u_k over the columns u_k of U restricted to the calibration
@@ -1491,8 +1440,8 @@ VfOutputUncertainty<Scalar> VectorCalibrationFilter<
   }
   const Scalar sc = scale_or_one();
   const Scalar inv_n = Scalar(1) / static_cast<Scalar>(n);
-  o.vector_nT = sc * std::sqrt(std::max(tv * inv_n, Scalar(0)) / Scalar(3));
-  o.intensity_nT = sc * std::sqrt(std::max(ti * inv_n, Scalar(0)));
+  o.vector_nT = sc * gram.vector_rms(tv);
+  o.intensity_nT = sc * gram.intensity_rms(ti);
   o.vector_noise_nT = sc * std::sqrt(std::max(nv * inv_n, Scalar(0)) / Scalar(3));
   o.intensity_noise_nT = sc * std::sqrt(std::max(ni * inv_n, Scalar(0)));
   return o;

@@ -85,8 +85,15 @@ TEST(BatchLiCalibrator, SurveyManoeuvreIsDecimatedOverItsLengthAndRecoversTheTru
     EXPECT_LE(std::abs(res.li.rm_rad(k) - truth.rm_rad(k)), 4 * res.sigma.rm_rad(k) + 1e-6) << k;
   }
   EXPECT_LT(res.quality.intensity_rms_nT, 0.4);
-  // The model returned to the loop is the result's model.
+  // The model returned to the loop is the result's model, with the fit's own 1-sigma of the
+  // outputs over the survey envelope (E-Acc-3): positive, and below the per-sample noise for
+  // a calibration from hundreds of samples.
   EXPECT_TRUE(model.w.isApprox(res.model.w));
+  EXPECT_FLOAT_EQ(r.calibration_sigma_f_nT, static_cast<float>(res.calibration_sigma_f_nT));
+  EXPECT_FLOAT_EQ(r.calibration_sigma_enu_nT, static_cast<float>(res.calibration_sigma_enu_nT));
+  EXPECT_GT(r.calibration_sigma_f_nT, 0.0F);
+  EXPECT_LT(r.calibration_sigma_f_nT, 0.3F);
+  EXPECT_GT(r.calibration_sigma_enu_nT, 0.0F);
 }
 
 TEST(BatchLiCalibrator, HeadingOnlyManoeuvreIsRefusedWithTheVerdictCode) {

@@ -35,7 +35,7 @@ class Compensator {
 
   // Returns false (and leaves *out untouched) when the raw sample is not finite.
   bool compensate(const Vec3<Scalar>& m, Compensated<Scalar>* out) const noexcept {
-    if (!m.allFinite()) return false;
+    if (!all_finite(m)) return false;
     out->h_s = w_ * (m - o_);
     out->h_b = rm_t_ * out->h_s;
     out->intensity = out->h_s.norm();

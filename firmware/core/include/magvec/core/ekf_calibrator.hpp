@@ -194,7 +194,7 @@ CalibratorAdd EkfCalibrator<Scalar, AlignCapacity, InitCapacity>::add(
   if (st == EkfStatus::kGated) return CalibratorAdd::kGated;
   last_m_ = m;
   have_m_ = true;
-  if (cfg_.align && r_bn != nullptr && r_bn->allFinite()) keep_for_alignment(m, f_ref_nT, *r_bn);
+  if (cfg_.align && r_bn != nullptr && all_finite(*r_bn)) keep_for_alignment(m, f_ref_nT, *r_bn);
   return CalibratorAdd::kUsed;
 }
 

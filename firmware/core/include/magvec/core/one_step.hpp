@@ -505,6 +505,7 @@ class OneStepFit {
       gram.add(Mat<Scalar, 3, kCal>(jacobian(lz, r, pm, hs, fn).template leftCols<kCal>()), prm.d);
     });
     if (gram.n == 0) return;
+    gram.finish();
     const Mat<Scalar, kCal, kCal> c = cov.template topLeftCorner<kCal, kCal>();
     out->envelope_attitudes = static_cast<std::uint32_t>(gram.n);
     out->calibration_sigma_enu_nT = norm.scale * gram.vector_rms(c.cwiseProduct(gram.gv).sum());

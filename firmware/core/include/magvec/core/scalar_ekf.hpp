@@ -354,19 +354,16 @@ class ScalarEkfBase {
     x.template tail<3>() = b;
     return x;
   }
+  // The state holds W row by row (ekf_w_index): the transpose of Eigen's column-major storage, a
+  // plain copy (the index loops stayed a call of ~80 instructions on the M4F's per-sample path).
+  static_assert(ekf_w_index(0, 1) == 1 && ekf_w_index(1, 0) == 3, "row-major W in the state");
   static Vec<Scalar, 9> flatten(const Mat3<Scalar>& w) noexcept {
     Vec<Scalar, 9> v;
-    for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 3; ++c)
-        v(ekf_w_index(r, c)) = w(r, c);
+    Eigen::Map<Mat3<Scalar>>(v.data()) = w.transpose();
     return v;
   }
   static Mat3<Scalar> unflatten(const Vec<Scalar, 9>& v) noexcept {
-    Mat3<Scalar> w;
-    for (int r = 0; r < 3; ++r)
-      for (int c = 0; c < 3; ++c)
-        w(r, c) = v(ekf_w_index(r, c));
-    return w;
+    return Eigen::Map<const Mat3<Scalar>>(v.data()).transpose();
   }
   Scalar scale_or_one() const noexcept { return scale_ > 0 ? scale_ : Scalar(1); }
   StateVec unit_scale() const noexcept {
@@ -461,6 +458,7 @@ class ScalarEkfBase {
 
   // Bierman's scalar update of U, D for a measurement with f = U^T h^T and variance r. Returns the
   // unnormalised gain k (K = k / s) and the innovation variance s = h P h^T + r.
+  // The gain into *k_out (a local of the caller's, not f).
   void bierman(const StateVec& f, Scalar r, StateVec* k_out, Scalar* s_out) noexcept {
     ud_bierman_update<Scalar, kN>(u_, d_, f, r, k_out, s_out);
   }
@@ -502,7 +500,7 @@ class ScalarEkfBase {
   EkfStatus filter_step(const Vec3<Scalar>& m, Scalar fn, Scalar z) noexcept {
     const Linearisation l0 = linearise(m, fn);
     // A finite but absurd sample can overflow the prediction: reject it before touching anything.
-    if (!(std::isfinite(l0.h) && std::isfinite(l0.r) && l0.h_row.allFinite())) {
+    if (!(std::isfinite(l0.h) && std::isfinite(l0.r) && all_finite(l0.h_row))) {
       ++counters_.rejected_nonfinite;
       return EkfStatus::kRejectedNonFinite;
     }
@@ -524,15 +522,16 @@ class ScalarEkfBase {
       ++window_gated_;
       return end_of_window_check(EkfStatus::kGated);
     }
-    StateVec k;
     Scalar s;
     if (cfg_.iterations == 1) {
+      StateVec k;
       bierman(f0, l0.r, &k, &s);
       x_ += k * (nu0 / s);
     } else {
       const StateVec x_prior = x_;
       const StateMat u_prior = u_;
       const StateVec d_prior = d_;
+      StateVec k;
       bierman(f0, l0.r, &k, &s);
       x_ += k * (nu0 / s);
       for (int it = 1; it < cfg_.iterations; ++it) {
@@ -546,7 +545,7 @@ class ScalarEkfBase {
         x_ = x_prior + k * (nu / s);
       }
     }
-    if (!x_.allFinite() || !d_.allFinite() || !u_upper_finite())
+    if (!all_finite(x_) || !all_finite(d_) || !u_upper_finite())
       return reinitialise(EkfResetReason::kNonFiniteState);
     if (!(d_.array() > 0).all()) return reinitialise(EkfResetReason::kCovarianceNotPositive);
     if (!(std::abs(c_inv().determinant()) > std::numeric_limits<Scalar>::epsilon())) {

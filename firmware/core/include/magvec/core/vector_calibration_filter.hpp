@@ -927,7 +927,7 @@ class VectorCalibrationFilter {
       ex->cov_mag = cov_mag;
       ex->l = l;
     }
-    return rw->allFinite() && hw->allFinite();
+    return all_finite(*rw) && all_finite(*hw);
   }
 
   Scalar reference_sigma() const noexcept {
@@ -965,8 +965,8 @@ class VectorCalibrationFilter {
     const Scalar s_pred = fv.dot(d_.cwiseProduct(fv)) + r;
     const Scalar nis = nu * nu / s_pred;
     if (gate && cfg_.gate_nis > Scalar(0) && !(nis <= cfg_.gate_nis)) return false;
-    StateVec k;
     Scalar s;
+    StateVec k;
     bierman(fv, r, &k, &s);
     x_ += k * (nu / s);
     return true;
@@ -1001,8 +1001,8 @@ class VectorCalibrationFilter {
       const StateVec fj = j == 0 ? f[0] : ut_times(hj);
       // Linearised once per sample: the later components see the earlier components' step.
       const Scalar nu = -rw(j) - hj.dot(x_ - x_lin);
-      StateVec k;
       Scalar s;
+      StateVec k;
       bierman(fj, Scalar(1), &k, &s);
       x_ += k * (nu / s);
       window_nis_sum_ += nu * nu / s;
@@ -1125,7 +1125,7 @@ class VectorCalibrationFilter {
     }
     consecutive_rejections_ = 0;
     maybe_fold_rm();
-    if (!x_.allFinite() || !d_.allFinite() || !u_upper_finite())
+    if (!all_finite(x_) || !all_finite(d_) || !u_upper_finite())
       return reset(VfResetReason::kNonFiniteState);
     if (!(d_.array() > Scalar(0)).all()) return reset(VfResetReason::kCovarianceNotPositive);
     if (!(std::abs(w().determinant()) > std::numeric_limits<Scalar>::epsilon()))
@@ -1201,6 +1201,7 @@ class VectorCalibrationFilter {
     ud_add_diagonal_noise<Scalar, kStates>(u_, d_, k, c);
   }
   // Bierman's scalar update for f = U^T h and variance r: unnormalised gain k and s = h P h^T + r.
+  // The gain into *k_out (a local of the caller's, not f).
   void bierman(const StateVec& f, Scalar r, StateVec* k_out, Scalar* s_out) noexcept {
     ud_bierman_update<Scalar, kStates>(u_, d_, f, r, k_out, s_out);
   }
@@ -1422,6 +1423,7 @@ VfOutputUncertainty<Scalar> VectorCalibrationFilter<
     nv += ex.cov.trace();
     ni += g_dir.dot(ex.cov * g_dir);
   });
+  gram.finish();
   const int n = gram.n;
   const CalMat& gv = gram.gv;
   const CalMat& gi = gram.gi;

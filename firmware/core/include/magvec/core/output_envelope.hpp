@@ -110,13 +110,13 @@ struct EnvelopeGram {
   void add(const Mat<Scalar, 3, N>& j, const Vec3<Scalar>& g_dir) noexcept {
     const Scalar* a = j.data();  // column k at a + 3k
     Vec<Scalar, N> hi;
-    for (int c = 0; c < N; ++c)
+    for (Eigen::Index c = 0; c < N; ++c)
       hi(c) = a[3 * c] * g_dir(0) + a[3 * c + 1] * g_dir(1) + a[3 * c + 2] * g_dir(2);
     Scalar* v = gv.data();
     Scalar* w = gi.data();
-    for (int c = 0; c < N; ++c) {
+    for (Eigen::Index c = 0; c < N; ++c) {
       const Scalar* jc = a + 3 * c;
-      for (int r = 0; r <= c; ++r) {
+      for (Eigen::Index r = 0; r <= c; ++r) {
         const Scalar* jr = a + 3 * r;
         v[N * c + r] += jr[0] * jc[0] + jr[1] * jc[1] + jr[2] * jc[2];
         w[N * c + r] += hi(r) * hi(c);

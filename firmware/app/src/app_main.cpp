@@ -151,7 +151,7 @@ core::PipelineConfig<Scalar> make_pipeline_config(const sim::ScenarioConfig& s) 
   // The spike screen runs with the pipeline's defaults, as in magvecd and `magvec run`. It costs
   // ~150 instructions per sample, and its wait for each sample's successor moves the attitude
   // lookup off its exact-time fast path: 5 334 per calibrating sample against the budget of 5 000
-  // when first measured, 4 837 since the lookup searches from the newest end, the interpolation
+  // when first measured, 4 836 since the lookup searches from the newest end, the interpolation
   // fraction avoids soft double and the EKF's finiteness checks and W copies got cheaper.
   return c;
 }

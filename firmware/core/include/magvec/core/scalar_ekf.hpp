@@ -456,9 +456,9 @@ class ScalarEkfBase {
     ud_add_diagonal_noise<Scalar, kN>(u_, d_, k, c);
   }
 
-  // Bierman's scalar update of U, D for a measurement with f = U^T h^T and variance r. Returns the
-  // unnormalised gain k (K = k / s) and the innovation variance s = h P h^T + r.
-  // The gain into *k_out (a local of the caller's, not f).
+  // Bierman's scalar update of U, D for a measurement with f = U^T h^T and variance r: the
+  // unnormalised gain k (K = k / s) into *k_out (the caller's local, not f) and the innovation
+  // variance s = h P h^T + r into *s_out.
   void bierman(const StateVec& f, Scalar r, StateVec* k_out, Scalar* s_out) noexcept {
     ud_bierman_update<Scalar, kN>(u_, d_, f, r, k_out, s_out);
   }

@@ -965,8 +965,8 @@ class VectorCalibrationFilter {
     const Scalar s_pred = fv.dot(d_.cwiseProduct(fv)) + r;
     const Scalar nis = nu * nu / s_pred;
     if (gate && cfg_.gate_nis > Scalar(0) && !(nis <= cfg_.gate_nis)) return false;
-    Scalar s;
     StateVec k;
+    Scalar s;
     bierman(fv, r, &k, &s);
     x_ += k * (nu / s);
     return true;
@@ -1001,8 +1001,8 @@ class VectorCalibrationFilter {
       const StateVec fj = j == 0 ? f[0] : ut_times(hj);
       // Linearised once per sample: the later components see the earlier components' step.
       const Scalar nu = -rw(j) - hj.dot(x_ - x_lin);
-      Scalar s;
       StateVec k;
+      Scalar s;
       bierman(fj, Scalar(1), &k, &s);
       x_ += k * (nu / s);
       window_nis_sum_ += nu * nu / s;
@@ -1200,8 +1200,8 @@ class VectorCalibrationFilter {
   void add_diagonal_noise(int k, Scalar c) noexcept {
     ud_add_diagonal_noise<Scalar, kStates>(u_, d_, k, c);
   }
-  // Bierman's scalar update for f = U^T h and variance r: unnormalised gain k and s = h P h^T + r.
-  // The gain into *k_out (a local of the caller's, not f).
+  // Bierman's scalar update for f = U^T h and variance r: unnormalised gain k into *k_out (the
+  // caller's local, not f) and s = h P h^T + r into *s_out.
   void bierman(const StateVec& f, Scalar r, StateVec* k_out, Scalar* s_out) noexcept {
     ud_bierman_update<Scalar, kStates>(u_, d_, f, r, k_out, s_out);
   }

@@ -27,6 +27,7 @@
 #include "magvec/core/ellipsoid_fit.hpp"
 #include "magvec/core/misalignment.hpp"
 #include "magvec/core/one_step.hpp"
+#include "magvec/core/output_envelope.hpp"
 #include "magvec/core/sample_store.hpp"
 #include "magvec/core/sensor_model.hpp"
 #include "magvec/core/types.hpp"
@@ -408,21 +409,13 @@ class BatchCalibrator {
     return m;
   }
 
+  // RMS spread of the body-frame vertical over the samples with attitude (the moments the vector
+  // filter's heading rule and the output envelope use: output_envelope.hpp).
   Scalar tilt_spread() const noexcept {
-    Vec3<Scalar> sum = Vec3<Scalar>::Zero();
-    Mat3<Scalar> sq = Mat3<Scalar>::Zero();
-    std::size_t n = 0;
-    for (std::size_t i = 0; i < store_.size(); ++i) {
-      if (!store_[i].has_attitude()) continue;
-      const Vec3<Scalar> u = store_[i].r_bn().col(2);
-      sum += u;
-      sq += u * u.transpose();
-      ++n;
-    }
-    if (n == 0) return Scalar(0);
-    const Scalar nn = static_cast<Scalar>(n);
-    const Mat3<Scalar> cov = sq / nn - (sum / nn) * (sum / nn).transpose();
-    return std::sqrt(std::max(cov.trace(), Scalar(0)));
+    TiltMoments<Scalar> tilts;
+    for (std::size_t i = 0; i < store_.size(); ++i)
+      if (store_[i].has_attitude()) tilts.add(store_[i].r_bn());
+    return tilts.spread_rad();
   }
 
   Scalar intensity_rms(const Mat3<Scalar>& w, const Vec3<Scalar>& o, bool need_att) const noexcept {

@@ -41,26 +41,27 @@ concept CoreScalar = std::is_same_v<Scalar, float> || std::is_same_v<Scalar, dou
 // -ffast-math, which would fold it). Eigen's allFinite() forms v - v and tests every component
 // in a loop of its own, out of line on the M4F (tests/mcu/insn_count.py: ~290 instructions per
 // calibrating sample of the EKF image for its three vectors of 12).
+// A plain matrix of more than 16 components (where Eigen's reduction is a loop) is probed over its
+// storage, two components per step; anything else through Eigen's unrolled reduction.
 template <typename Derived>
 bool all_finite(const Eigen::MatrixBase<Derived>& m) noexcept {
   using S = typename Derived::Scalar;
-  return (m.array() * S(0)).sum() == S(0);
-}
-// A plain matrix of more than 16 components (Eigen's reduction is a loop there): over its storage,
-// two components per step. Up to 16, Eigen's unrolled reduction (above) is shorter.
-template <typename S, int R, int C, int O, int MR, int MC>
-bool all_finite(const Eigen::Matrix<S, R, C, O, MR, MC>& m) noexcept {
-  if constexpr (R > 0 && C > 0 && R * C <= 16) return (m.array() * S(0)).sum() == S(0);
-  const S* p = m.data();
-  const Eigen::Index n = m.size();
-  S a{0}, b{0};
-  Eigen::Index i = 0;
-  for (; i + 1 < n; i += 2) {
-    a += p[i] * S(0);
-    b += p[i + 1] * S(0);
+  constexpr int kSize = Derived::SizeAtCompileTime;
+  if constexpr (std::is_base_of_v<Eigen::PlainObjectBase<Derived>, Derived> &&
+                (kSize == Eigen::Dynamic || kSize > 16)) {
+    const S* p = m.derived().data();
+    const Eigen::Index n = m.size();
+    S a{0}, b{0};
+    Eigen::Index i = 0;
+    for (; i + 1 < n; i += 2) {
+      a += p[i] * S(0);
+      b += p[i + 1] * S(0);
+    }
+    if (i < n) a += p[i] * S(0);
+    return a + b == S(0);
+  } else {
+    return (m.array() * S(0)).sum() == S(0);
   }
-  if (i < n) a += p[i] * S(0);
-  return a + b == S(0);
 }
 
 }  // namespace magvec::core

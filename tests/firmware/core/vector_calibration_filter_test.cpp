@@ -139,7 +139,18 @@ std::unique_ptr<Filter<Scalar>> run(const std::vector<SimSample>& data, const Vf
     if (st == VfStatus::kInitialised && initialised_at != nullptr)
       *initialised_at = static_cast<int>(i);
   }
+  f->flush();  // fold_samples > 1: the last samples' information too
   return f;
+}
+
+// The filter configuration of a test run in information folds of `fold` samples (E-VF-B; 1: the
+// sequential per-sample updates). The microcontroller image folds every kMcuFold samples.
+constexpr int kMcuFold = 16;
+template <typename Scalar>
+VfConfig<Scalar> fold_cfg(int fold) {
+  VfConfig<Scalar> c;
+  c.fold_samples = fold;
+  return c;
 }
 
 // Body-frame rotation error phi of an estimate: Rm_est = Rm_true (I - [phi x]) to first order.
@@ -189,7 +200,7 @@ Truth full_truth() {
   return tr;
 }
 
-TEST(VectorCalibrationFilter, NoiseFreeRecoversEveryParameterDouble) {
+void noise_free_recovers_every_parameter_double(int fold) {
   std::mt19937_64 rng(1);
   const Truth tr = full_truth();
   SimOptions o;
@@ -199,7 +210,7 @@ TEST(VectorCalibrationFilter, NoiseFreeRecoversEveryParameterDouble) {
   o.temp_end_degC = 35;
   o.exact_lag_kinematics = false;  // the filter's kinematics: noise-free data are consistent
   const auto data = simulate_manoeuvre(tr, o, rng);
-  VfConfig<double> cfg;
+  VfConfig<double> cfg = fold_cfg<double>(fold);
   cfg.mag_noise_nT = 1e-4;
   cfg.attitude_noise_rad = 1e-9;
   cfg.reference_sigma_nT = 1e-6;
@@ -225,6 +236,12 @@ TEST(VectorCalibrationFilter, NoiseFreeRecoversEveryParameterDouble) {
   EXPECT_LT(std::abs(e(15)), 1e-8 * tr.tau_s);
   for (int k = 16; k < 19; ++k)
     EXPECT_LT(std::abs(e(k)), 1e-8 * tr.tc.cwiseAbs().maxCoeff()) << kStateNames[k];
+}
+TEST(VectorCalibrationFilter, NoiseFreeRecoversEveryParameterDouble) {
+  noise_free_recovers_every_parameter_double(1);
+}
+TEST(VectorCalibrationFilter, NoiseFreeRecoversEveryParameterDoubleInFolds) {
+  noise_free_recovers_every_parameter_double(kMcuFold);
 }
 
 // float32: the same data with realistic noise settings (float cannot resolve 1e-4 nT in 50 uT).
@@ -417,7 +434,7 @@ TEST(VectorCalibrationFilter, LiSetupMatchesTheBatchOneStepFit) {
 // seen while collecting (docs/equations.md E-VF-1) the ratios reached 1.87 (Kof_x): the first
 // 2.9 s, passed over while collecting, carry much of the x-axis information (the batch fit without
 // them: Kof_x 0.159 nT instead of 0.099 nT).
-TEST(VectorCalibrationFilter, ManoeuvreMatchesTheBatchOneStepFit) {
+void manoeuvre_matches_the_batch_one_step_fit(int fold) {
   constexpr int kRuns = 50;
   const Truth tr;
   SimOptions o;
@@ -430,7 +447,7 @@ TEST(VectorCalibrationFilter, ManoeuvreMatchesTheBatchOneStepFit) {
     const auto data = simulate_manoeuvre(tr, o, rng);
     const BatchResult<double> b = batch_fit<kDynamicCapacity>(data);
     ASSERT_EQ(b.verdict, Verdict::kOk) << verdict_name(b.verdict);
-    auto f = run<double>(data, VfConfig<double>{});
+    auto f = run<double>(data, fold_cfg<double>(fold));
     if (run_i == 0) print_counters(*f);
     ASSERT_TRUE(f->initialised()) << "run " << run_i;
     ASSERT_EQ(f->counters().resets, 0U);
@@ -441,6 +458,12 @@ TEST(VectorCalibrationFilter, ManoeuvreMatchesTheBatchOneStepFit) {
       kRuns);
   cmp.report_and_check(1.2);
   cmp.check_sigmas({0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15}, 0.25);
+}
+TEST(VectorCalibrationFilter, ManoeuvreMatchesTheBatchOneStepFit) {
+  manoeuvre_matches_the_batch_one_step_fit(1);
+}
+TEST(VectorCalibrationFilter, ManoeuvreMatchesTheBatchOneStepFitInFolds) {
+  manoeuvre_matches_the_batch_one_step_fit(kMcuFold);
 }
 }  // namespace
 }  // namespace magvec::core
@@ -456,7 +479,7 @@ SimOptions noisy_manoeuvre(double duration_s) {
   return o;
 }
 
-TEST(VectorCalibrationFilter, TemperatureRampRecoversTheCoefficients) {
+void temperature_ramp_recovers_the_coefficients(int fold) {
   Truth tr;
   tr.tc = {0.3, -0.3, 0.3};
   SimOptions o = noisy_manoeuvre(60);
@@ -466,7 +489,7 @@ TEST(VectorCalibrationFilter, TemperatureRampRecoversTheCoefficients) {
   for (unsigned seed : {11U, 12U, 13U}) {
     std::mt19937_64 rng(seed);
     const auto data = simulate_manoeuvre(tr, o, rng);
-    VfConfig<double> cfg;
+    VfConfig<double> cfg = fold_cfg<double>(fold);
     cfg.temperature_ref_degC = tr.t0_degC;
     auto f = run<double>(data, cfg);
     ASSERT_TRUE(f->initialised());
@@ -486,15 +509,21 @@ TEST(VectorCalibrationFilter, TemperatureRampRecoversTheCoefficients) {
     }
   }
 }
+TEST(VectorCalibrationFilter, TemperatureRampRecoversTheCoefficients) {
+  temperature_ramp_recovers_the_coefficients(1);
+}
+TEST(VectorCalibrationFilter, TemperatureRampRecoversTheCoefficientsInFolds) {
+  temperature_ramp_recovers_the_coefficients(kMcuFold);
+}
 
 // 300 nT over 10 minutes (0.5 nT/s), with a 1 nT/sqrt(s) random walk on the offset.
-TEST(VectorCalibrationFilter, TracksA300nTOffsetDrift) {
+void tracks_a_300_nt_offset_drift(int fold) {
   const Truth tr;
   SimOptions o = noisy_manoeuvre(600);
   o.drift_nT = {300, -300, 300};
   std::mt19937_64 rng(21);
   const auto data = simulate_manoeuvre(tr, o, rng);
-  VfConfig<double> cfg;
+  VfConfig<double> cfg = fold_cfg<double>(fold);
   cfg.offset_q_nT2_per_s = 1.0;
   Filter<double> f(cfg);
   double ss = 0, worst = 0, worst_sigma = 0;
@@ -521,8 +550,14 @@ TEST(VectorCalibrationFilter, TracksA300nTOffsetDrift) {
   EXPECT_LT(rms, 1.0);          // measured 0.73 nT
   EXPECT_LT(worst_sigma, 4.0);  // measured 2.98 sigma (3.02 nT against a 1.14 nT 1-sigma)
 }
+TEST(VectorCalibrationFilter, TracksA300nTOffsetDrift) {
+  tracks_a_300_nt_offset_drift(1);
+}
+TEST(VectorCalibrationFilter, TracksA300nTOffsetDriftInFolds) {
+  tracks_a_300_nt_offset_drift(kMcuFold);
+}
 
-TEST(VectorCalibrationFilter, FollowsA20nTFieldStepWithoutCorruptingWAndRm) {
+void follows_a_20_nt_field_step(int fold) {
   const Truth tr;
   SimOptions o = noisy_manoeuvre(60);
   SimOptions o_step = o;
@@ -531,7 +566,7 @@ TEST(VectorCalibrationFilter, FollowsA20nTFieldStepWithoutCorruptingWAndRm) {
   std::mt19937_64 rng_a(31), rng_b(31);
   const auto data = simulate_manoeuvre(tr, o, rng_a);
   const auto data_step = simulate_manoeuvre(tr, o_step, rng_b);
-  VfConfig<double> cfg;
+  VfConfig<double> cfg = fold_cfg<double>(fold);
   cfg.field_q_nT2_per_s = 0.01;
   auto f = run<double>(data, cfg);
   auto g = run<double>(data_step, cfg);
@@ -554,22 +589,34 @@ TEST(VectorCalibrationFilter, FollowsA20nTFieldStepWithoutCorruptingWAndRm) {
   std::printf("W and Rm with and without the step differ by at most %.3f sigma\n", worst);
   EXPECT_LT(worst, 1.0);
 }
+TEST(VectorCalibrationFilter, FollowsA20nTFieldStepWithoutCorruptingWAndRm) {
+  follows_a_20_nt_field_step(1);
+}
+TEST(VectorCalibrationFilter, FollowsA20nTFieldStepWithoutCorruptingWAndRmInFolds) {
+  follows_a_20_nt_field_step(kMcuFold);
+}
 
 // ---- 4. time offset -------------------------------------------------------------------------
-TEST(VectorCalibrationFilter, Recovers10msMagnetometerLag) {
+void recovers_10ms_magnetometer_lag(int fold) {
   Truth tr;
   tr.tau_s = 0.010;
   const SimOptions o = noisy_manoeuvre(30);  // exact kinematics: attitude at t - tau
   for (unsigned seed : {41U, 42U, 43U}) {
     std::mt19937_64 rng(seed);
     const auto data = simulate_manoeuvre(tr, o, rng);
-    auto f = run<double>(data, VfConfig<double>{});
+    auto f = run<double>(data, fold_cfg<double>(fold));
     ASSERT_TRUE(f->initialised());
     EXPECT_EQ(f->counters().resets, 0U);
     std::printf("seed %u: time offset %.4f ms +- %.4f ms (truth 10 ms)\n", seed,
                 f->time_offset_s() * 1e3, f->sigmas().dt_s * 1e3);
     EXPECT_LT(std::abs(f->time_offset_s() - tr.tau_s), 1e-3);
   }
+}
+TEST(VectorCalibrationFilter, Recovers10msMagnetometerLag) {
+  recovers_10ms_magnetometer_lag(1);
+}
+TEST(VectorCalibrationFilter, Recovers10msMagnetometerLagInFolds) {
+  recovers_10ms_magnetometer_lag(kMcuFold);
 }
 
 // The caller may hand over the attitude already taken at t - a (interpolated from the INS samples,
@@ -629,7 +676,7 @@ VfStart<Scalar> stored_start(const Truth& tr) {
 // sigma while float32 floored the reference sigma at 16 eps (0.1 nT instead of the configured
 // 0.01 nT), deferred the misalignment fold, and the first samples after the stored start were
 // taken at their first linearisation (E-VF-1, E-VF-A).
-TEST(VectorCalibrationFilter, FloatMatchesDoubleWithinATenthSigma) {
+void float_matches_double(int fold) {
   Truth tr;
   tr.tau_s = 0.005;
   tr.tc = {0.3, -0.3, 0.3};
@@ -639,14 +686,16 @@ TEST(VectorCalibrationFilter, FloatMatchesDoubleWithinATenthSigma) {
   o.temp_end_degC = 35;
   std::mt19937_64 rng(51);
   const auto data = simulate_manoeuvre(tr, o, rng);
-  Filter<double> fd;
-  Filter<float> ff;
+  Filter<double> fd(fold_cfg<double>(fold));
+  Filter<float> ff(fold_cfg<float>(fold));
   fd.start(stored_start<double>(tr));
   ff.start(stored_start<float>(tr));
   for (const SimSample& s : data) {
     fd.update(s.in);
     ff.update(cast_sample<float>(s.in));
   }
+  fd.flush();
+  ff.flush();
   ASSERT_TRUE(fd.initialised());
   ASSERT_TRUE(ff.initialised());
   print_counters(fd);
@@ -669,17 +718,24 @@ TEST(VectorCalibrationFilter, FloatMatchesDoubleWithinATenthSigma) {
   EXPECT_LT(worst, 0.1);
   EXPECT_LT(worst_truth, 4.0);
 }
+TEST(VectorCalibrationFilter, FloatMatchesDoubleWithinATenthSigma) {
+  float_matches_double(1);
+}
+TEST(VectorCalibrationFilter, FloatMatchesDoubleWithinATenthSigmaInFolds) {
+  float_matches_double(kMcuFold);
+}
 
 // ---- 6. no heap per sample ------------------------------------------------------------------
 template <typename Scalar>
-std::size_t allocations_over_a_run(const std::vector<SimSample>& data) {
+std::size_t allocations_over_a_run(const std::vector<SimSample>& data, int fold) {
   std::vector<VfSample<Scalar>> in;
   for (const SimSample& s : data)
     in.push_back(cast_sample<Scalar>(s.in));
-  auto f = std::make_unique<Filter<Scalar>>();
+  auto f = std::make_unique<Filter<Scalar>>(fold_cfg<Scalar>(fold));
   test::AllocationScope scope;
   for (const VfSample<Scalar>& s : in)
     f->update(s);
+  f->flush();
   const std::size_t n = scope.count();
   EXPECT_TRUE(f->initialised());
   return n;
@@ -694,8 +750,10 @@ TEST(VectorCalibrationFilter, NoHeapAllocationPerSample) {
   std::mt19937_64 rng(61);
   const auto data = simulate_manoeuvre(tr, o, rng);
   // The whole run, the start from data (batch fit and replays) included.
-  EXPECT_EQ(allocations_over_a_run<double>(data), 0U);
-  EXPECT_EQ(allocations_over_a_run<float>(data), 0U);
+  for (int fold : {1, kMcuFold}) {
+    EXPECT_EQ(allocations_over_a_run<double>(data, fold), 0U) << fold;
+    EXPECT_EQ(allocations_over_a_run<float>(data, fold), 0U) << fold;
+  }
 }
 
 }  // namespace

@@ -13,12 +13,17 @@
 namespace magvec::core {
 
 // U^T h: N(N-1)/2 multiply-adds instead of the N^2 of a full product (per sample, in every update).
+// `first`: h is zero before it (a sparse row, a pseudo-measurement of an information fold), so is
+// U^T h (U is upper triangular) and only the trailing block is computed.
 template <typename Scalar, int N>
-Vec<Scalar, N> ud_ut_times(const Mat<Scalar, N, N>& u, const Vec<Scalar, N>& h) noexcept {
+Vec<Scalar, N> ud_ut_times(const Mat<Scalar, N, N>& u, const Vec<Scalar, N>& h,
+                           int first = 0) noexcept {
   Vec<Scalar, N> f;
-  for (int j = 0; j < N; ++j) {
+  for (int j = 0; j < first; ++j)
+    f(j) = Scalar(0);
+  for (int j = first; j < N; ++j) {
     Scalar acc = h(j);
-    for (int i = 0; i < j; ++i)
+    for (int i = first; i < j; ++i)
       acc += u(i, j) * h(i);
     f(j) = acc;
   }
@@ -70,20 +75,23 @@ void ud_add_diagonal_noise(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, int k, Scala
 
 // Bierman's scalar update of U, D for a measurement with f = U^T h^T and variance r: the
 // unnormalised gain k (K = k / s) into *k_out (not f or d), the innovation variance
-// s = h P h^T + r into *s_out.
+// s = h P h^T + r into *s_out. `first`: f is zero before it (ud_ut_times with the same `first`);
+// the steps before it change nothing and are skipped (the gain still has every component).
 template <typename Scalar, int N>
 void ud_bierman_update(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, const Vec<Scalar, N>& f, Scalar r,
-                       Vec<Scalar, N>* k_out, Scalar* s_out) noexcept {
+                       Vec<Scalar, N>* k_out, Scalar* s_out, int first = 0) noexcept {
   const Vec<Scalar, N> v = d.cwiseProduct(f);
   // Built in place, not zeroed: k(j) is set at step j, before any later step adds to it (zeroing
   // a local and copying it out were two library calls on the M4F's per-sample path: 120
   // instructions per calibrating sample of the EKF image; the 19-state filter's update takes ~3 %
   // more this way, its image is far from its budget either way).
   Vec<Scalar, N>& k = *k_out;
-  Scalar alpha = r + f(0) * v(0);
-  d(0) *= r / alpha;
-  k(0) = v(0);
-  for (int j = 1; j < N; ++j) {
+  for (int j = 0; j < first; ++j)
+    k(j) = Scalar(0);
+  Scalar alpha = r + f(first) * v(first);
+  d(first) *= r / alpha;
+  k(first) = v(first);
+  for (int j = first + 1; j < N; ++j) {
     const Scalar beta = alpha;
     alpha += f(j) * v(j);
     const Scalar lambda = -f(j) / beta;

@@ -11,6 +11,8 @@
 // Jacobians: E-VF-3. Time offset: E-VF-5. Temperature: E-VF-6. Heading rule: E-VF-7 (the rotation
 // about the body z axis is held, its gain exactly zero, until the tilt spread reaches the batch
 // methods' limit). Gating, divergence and resets: E-VF-8.
+// Live updates per sample (three sequential scalar updates) or in information folds of
+// fold_samples samples (E-VF-B: accumulated at the last fold's state, then pseudo-measurements).
 // Numerics: P = U D U^T (Bierman scalar update, Agee-Turner for process noise, as scalar_ekf.hpp),
 // fields normalised by a reference magnitude, states held as nominal + error so float32 does not
 // lose updates below the resolution of values of order one (E-VF-A).
@@ -131,6 +133,12 @@ struct VfConfig {
   Scalar offset_q_nT2_per_s{0};             // offset drift
   Scalar field_q_nT2_per_s{0};              // diurnal variation / site change
   Scalar sample_interval_s = Scalar(0.01);  // when a sample carries no interval
+  // Live samples per information fold (E-VF-B). 1: every sample is three sequential scalar
+  // updates (O(n^2) each). K > 1: each sample's whitened rows are only accumulated, linearised at
+  // the last fold, and every K samples their information enters U-D as a few dozen scalar
+  // pseudo-measurements (about n^3/3 flops once): a microcontroller's per-sample cost drops by
+  // the Bierman updates. The state and covariance the outputs read are those of the last fold.
+  int fold_samples = 1;
   bool estimate_time_offset = true;
   Scalar time_offset0_s{0};
   Scalar time_offset_sigma0_s = Scalar(0.05);
@@ -260,6 +268,11 @@ class VectorCalibrationFilter {
   void start(const VfStart<Scalar>& s) noexcept;
 
   VfStatus update(const VfSample<Scalar>& in) noexcept;
+
+  // Folds the samples accumulated since the last fold (E-VF-B; nothing to do with fold_samples 1):
+  // the outputs then include every sample given. kReset when the fold found a divergence
+  // (last_reset_reason()), else kAccepted.
+  VfStatus flush() noexcept;
 
   bool initialised() const noexcept { return running_; }
   const VfCounters& counters() const noexcept { return counters_; }
@@ -405,6 +418,7 @@ class VectorCalibrationFilter {
     reset_windows();
     nz_n_ = 0;
     nz_mean_.setZero();
+    blk_.clear();
   }
   void reset_windows() noexcept {
     window_n_ = 0;
@@ -562,6 +576,7 @@ class VectorCalibrationFilter {
   // first samples' information is taken at a good linearisation point (E-VF-1).
   VfStatus settle(VfStatus status) noexcept {
     settling_ = false;
+    blk_.clear();  // the passes take every stored sample again, the pending ones included
     for (int pass = 0; pass < cfg_.init_full_passes; ++pass) {
       fold_all();
       StateMat p = settle_p_;
@@ -1088,6 +1103,30 @@ class VectorCalibrationFilter {
     return std::isfinite(out->lm) && std::isfinite(out->la);
   }
 
+  static constexpr int kFoldNoiseEvery = 4;
+  // Samples accumulated since the last fold (E-VF-B).
+  struct Block {
+    int live = 0;                                                  // live samples (gated too)
+    int n = 0;                                                     // vector samples accumulated
+    int n_ref = 0;                                                 // references accumulated
+    Scalar ref_sum{0};                                             // sum of their innovations
+    Scalar dt_s{0};                                                // time since the last fold
+    Mat<Scalar, 3, kStates> h0 = Mat<Scalar, 3, kStates>::Zero();  // first sample's rows
+    Vec3<Scalar> y0 = Vec3<Scalar>::Zero();
+    Mat<Scalar, 3, kStates> sh = Mat<Scalar, 3, kStates>::Zero();  // sums of (h - h0)
+    Vec3<Scalar> sy = Vec3<Scalar>::Zero();                        // sums of (y - y0)
+    Vec3<Scalar> see = Vec3<Scalar>::Zero();                       // sums of (y - y0)^2
+    StateMat g = StateMat::Zero();   // sum (h - h0)^T (h - h0), lower triangle
+    StateVec gy = StateVec::Zero();  // sum (h - h0)^T (y - y0)
+    void clear() noexcept {
+      live = 0;
+      n = 0;
+      n_ref = 0;
+      ref_sum = Scalar(0);
+      dt_s = Scalar(0);
+    }
+  };
+
   void add_process_noise(Scalar interval_s) noexcept {
     const Scalar s2 = scale_or_one() * scale_or_one();
     const Scalar qo = cfg_.offset_q_nT2_per_s * interval_s / s2;
@@ -1125,13 +1164,238 @@ class VectorCalibrationFilter {
     }
     consecutive_rejections_ = 0;
     maybe_fold_rm();
+    if (state_check() == VfStatus::kReset) return VfStatus::kReset;
+    ++counters_.updates;
+    return window_check(status, false);
+  }
+
+  // Divergence of the state itself (E-VF-8): kReset (restarted) or kAccepted.
+  VfStatus state_check() noexcept {
     if (!all_finite(x_) || !all_finite(d_) || !u_upper_finite())
       return reset(VfResetReason::kNonFiniteState);
     if (!(d_.array() > Scalar(0)).all()) return reset(VfResetReason::kCovarianceNotPositive);
     if (!(std::abs(w().determinant()) > std::numeric_limits<Scalar>::epsilon()))
       return reset(VfResetReason::kSingularModel);
+    return VfStatus::kAccepted;
+  }
+
+  // ---- information folds (E-VF-B) ---------------------------------------------------------------
+  bool block_mode() const noexcept { return cfg_.fold_samples > 1; }
+
+  // A live sample with fold_samples > 1: the same gates as live_step, at the last fold's state
+  // and covariance, and the accepted rows accumulated instead of applied.
+  VfStatus live_step_block(const Prepared& p) noexcept {
+    VfStatus status = VfStatus::kAccepted;
+    if (std::isfinite(p.f)) {
+      Scalar nu{0};
+      if (reference_check(p.f, &nu)) {
+        ++counters_.reference_updates;
+        consecutive_ref_gated_ = 0;
+      } else {
+        ++counters_.gated_reference;
+        if (++consecutive_ref_gated_ < cfg_.field_change_after)
+          return block_step_end(VfStatus::kGated, true);
+        // The pending samples were taken with the old field: folded first, then h_n re-opened.
+        if (fold_and_check() == VfStatus::kReset) return VfStatus::kReset;
+        reopen_field();
+        if (!reference_check(p.f, &nu)) return block_step_end(VfStatus::kGated, true);
+        status = VfStatus::kFieldReopened;
+      }
+      ++blk_.n_ref;
+      blk_.ref_sum += nu;
+    }
+    if (held_[kRmHeading]) ++counters_.heading_held;
+    // E-VF-10 takes every kFoldNoiseEvery-th sample (its U^T products and statistics cost about
+    // what the rest of the sample does): a quarter of the information for the noise figures.
+    const bool noise_sample = blk_.live % kFoldNoiseEvery == 0;
+    Vec3<Scalar> rw;
+    Mat<Scalar, 3, kStates> hw;
+    LinExtras ex;
+    if (!linearise(p, &rw, &hw, noise_sample ? &ex : nullptr))
+      return reset(VfResetReason::kNonFiniteState);
+    // The state has not moved since the fold, so the prior innovation is rw itself. Its NIS at R
+    // alone bounds the true one (S_j = f^T D f + 1 >= 1): the U^T products are needed only when
+    // the bound fails the gate, and for the samples E-VF-10 takes.
+    Scalar nis = rw.cwiseAbs2().maxCoeff();
+    std::array<StateVec, 3> f;
+    if (noise_sample || (cfg_.gate_nis > Scalar(0) && !(nis <= cfg_.gate_nis))) {
+      nis = Scalar(0);
+      for (int j = 0; j < 3; ++j) {
+        f[static_cast<std::size_t>(j)] = ut_times(hw.row(j).transpose());
+        const StateVec& fj = f[static_cast<std::size_t>(j)];
+        nis = std::max(nis, rw(j) * rw(j) / (fj.dot(d_.cwiseProduct(fj)) + Scalar(1)));
+      }
+    }
+    last_nis_ = nis;
+    if (cfg_.gate_nis > Scalar(0) && !(nis <= cfg_.gate_nis)) {
+      ++counters_.gated;
+      if (++consecutive_rejections_ >= cfg_.max_consecutive_rejections && cfg_.divergence_detection)
+        return reset(VfResetReason::kConsecutiveRejections);
+      return block_step_end(VfStatus::kGated, true);
+    }
+    if (noise_sample) note_innovation(ex, f, rw);
+    consecutive_rejections_ = 0;
+    accumulate(hw, Vec3<Scalar>(-rw));
     ++counters_.updates;
-    return window_check(status, false);
+    return block_step_end(status, false);
+  }
+
+  VfStatus block_step_end(VfStatus status, bool gated) noexcept {
+    if (++blk_.live >= cfg_.fold_samples && fold_and_check() == VfStatus::kReset)
+      return VfStatus::kReset;
+    return window_check(status, gated);
+  }
+
+  // The reference's gate at the fold's state (E-VF-4): innovation into *nu; false when gated.
+  // U^T h of the h_n-only row costs a few dozen multiply-adds (first = kHn0).
+  bool reference_check(Scalar f, Scalar* nu) noexcept {
+    const Vec3<Scalar> hn = full().template segment<3>(kHn0);
+    const Scalar n = hn.norm();
+    if (!(n > Scalar(0))) return false;
+    if (!(ref_dir_.squaredNorm() > Scalar(0))) ref_dir_ = hn / n;
+    StateVec h = StateVec::Zero();
+    h.template segment<3>(kHn0) = ref_dir_;
+    const StateVec fv = ud_ut_times<Scalar, kStates>(u_, h, kHn0);
+    const Scalar sf = reference_sigma();
+    *nu = f - ref_dir_.dot(hn);
+    const Scalar nis = *nu * *nu / (fv.dot(d_.cwiseProduct(fv)) + sf * sf);
+    return !(cfg_.gate_nis > Scalar(0)) || nis <= cfg_.gate_nis;
+  }
+
+  // Accumulates a sample's whitened rows hw and residuals y (y = hw dx + noise): centred on the
+  // block's first sample, so the scatter that carries the block's new directions is summed from
+  // differences, not recovered by cancellation from sums of near-equal rows (E-VF-B).
+  void accumulate(const Mat<Scalar, 3, kStates>& hw, const Vec3<Scalar>& y) noexcept {
+    if (blk_.n == 0) {
+      blk_.h0 = hw;
+      blk_.y0 = y;
+      blk_.sh.setZero();
+      blk_.sy.setZero();
+      blk_.see.setZero();
+      blk_.g.setZero();
+      blk_.gy.setZero();
+    } else {
+      const Mat<Scalar, 3, kStates> dh = hw - blk_.h0;
+      const Vec3<Scalar> e = y - blk_.y0;
+      blk_.sh += dh;
+      blk_.sy += e;
+      blk_.see += e.cwiseProduct(e);
+      // The lower triangle column by column: column i of g and the three rows of dh from i on
+      // are contiguous (column-major), the M4F's loads and stores stay sequential.
+      const Scalar* dp = dh.data();
+      for (std::ptrdiff_t i = 0; i < kStates; ++i) {
+        const Scalar* di = dp + 3 * i;
+        const Scalar a0 = di[0], a1 = di[1], a2 = di[2];
+        if (a0 == Scalar(0) && a1 == Scalar(0) && a2 == Scalar(0)) continue;  // a held state
+        blk_.gy(i) += a0 * e(0) + a1 * e(1) + a2 * e(2);
+        Scalar* gc = &blk_.g(0, i);
+        for (std::ptrdiff_t j = i; j < kStates; ++j, di += 3)
+          gc[j] += a0 * di[0] + a1 * di[1] + a2 * di[2];
+      }
+    }
+    ++blk_.n;
+  }
+
+  // One scalar pseudo-measurement h^T dx = z (variance r) of a fold, dx = x - x_lin: its NIS.
+  Scalar pseudo_update(const StateVec& h, Scalar z, Scalar r, int first,
+                       const StateVec& x_lin) noexcept {
+    const Scalar nu = z - h.dot(x_ - x_lin);
+    const StateVec fv = ud_ut_times<Scalar, kStates>(u_, h, first);
+    StateVec k;
+    Scalar s;
+    ud_bierman_update<Scalar, kStates>(u_, d_, fv, r, &k, &s, first);
+    x_ += k * (nu / s);
+    return nu * nu / s;
+  }
+
+  // E-VF-B: the block's process noise, then its information as pseudo-measurements: the
+  // reference's mean innovation along its fixed direction; the three mean rows (variance 1/n);
+  // the scatter S = sum (h - hbar)^T (h - hbar) as L D L^T, each column of L one measurement of
+  // variance 1/D_i. Together exactly the information sum h^T h and sum h^T y of the block's rows,
+  // every row linearised at the fold's state. The block's NIS (pseudo-measurements' plus the
+  // scatter's least-squares residual, 3 n degrees of freedom) feeds the divergence window.
+  void fold_block() noexcept {
+    if (blk_.dt_s > Scalar(0)) add_process_noise(blk_.dt_s);
+    const StateVec x_lin = x_;
+    if (blk_.n_ref > 0) {
+      StateVec h = StateVec::Zero();
+      h.template segment<3>(kHn0) = ref_dir_;
+      const Scalar nr = static_cast<Scalar>(blk_.n_ref);
+      const Scalar sf = reference_sigma();
+      pseudo_update(h, blk_.ref_sum / nr, sf * sf / nr, kHn0, x_lin);
+    }
+    if (blk_.n > 0) {
+      const Scalar inv = Scalar(1) / static_cast<Scalar>(blk_.n);
+      Scalar chi2{0};
+      for (int j = 0; j < 3; ++j) {
+        const StateVec hbar = (blk_.h0.row(j) + blk_.sh.row(j) * inv).transpose();
+        chi2 += pseudo_update(hbar, blk_.y0(j) + blk_.sy(j) * inv, inv, 0, x_lin);
+      }
+      // Scatter about the mean, in place in the lower triangle.
+      StateMat& a = blk_.g;
+      StateVec w = blk_.gy;
+      Scalar energy{0};
+      for (int j = 0; j < 3; ++j)
+        energy += blk_.see(j) - blk_.sy(j) * blk_.sy(j) * inv;
+      for (int i = 0; i < kStates; ++i) {
+        w(i) -=
+            (blk_.sh(0, i) * blk_.sy(0) + blk_.sh(1, i) * blk_.sy(1) + blk_.sh(2, i) * blk_.sy(2)) *
+            inv;
+        for (int j = i; j < kStates; ++j)
+          a(j, i) -= (blk_.sh(0, i) * blk_.sh(0, j) + blk_.sh(1, i) * blk_.sh(1, j) +
+                      blk_.sh(2, i) * blk_.sh(2, j)) *
+                     inv;
+      }
+      // L D L^T in place (L strictly below the diagonal, D on it). A pivot at rounding level of
+      // its diagonal carries no information the block has: its direction is dropped.
+      const Scalar tol = Scalar(1e-3);
+      StateVec dl;
+      for (int j = 0; j < kStates; ++j) {
+        StateVec ld;  // L(j, k) D(k)
+        Scalar dj = a(j, j);
+        for (int k = 0; k < j; ++k) {
+          ld(k) = a(j, k) * dl(k);
+          dj -= ld(k) * a(j, k);
+        }
+        if (!(dj > tol * a(j, j))) {
+          dl(j) = Scalar(0);
+          for (int i = j + 1; i < kStates; ++i)
+            a(i, j) = Scalar(0);
+          continue;
+        }
+        dl(j) = dj;
+        for (int i = j + 1; i < kStates; ++i) {
+          Scalar v = a(i, j);
+          for (int k = 0; k < j; ++k)
+            v -= a(i, k) * ld(k);
+          a(i, j) = v / dj;
+        }
+      }
+      // w = L^-1 eta; measurement i: L(:, i)^T dx = w_i / D_i, variance 1 / D_i.
+      for (int i = 0; i < kStates; ++i)
+        for (int k = 0; k < i; ++k)
+          w(i) -= a(i, k) * w(k);
+      for (int i = 0; i < kStates; ++i) {
+        if (!(dl(i) > Scalar(0))) continue;
+        StateVec h;
+        for (int m = 0; m < i; ++m)
+          h(m) = Scalar(0);
+        h(i) = Scalar(1);
+        for (int m = i + 1; m < kStates; ++m)
+          h(m) = a(m, i);
+        energy -= w(i) * w(i) / dl(i);
+        chi2 += pseudo_update(h, w(i) / dl(i), Scalar(1) / dl(i), i, x_lin);
+      }
+      window_nis_sum_ += chi2 + std::max(energy, Scalar(0));
+      window_nis_n_ += 3 * blk_.n;
+    }
+    blk_.clear();
+  }
+
+  VfStatus fold_and_check() noexcept {
+    fold_block();
+    maybe_fold_rm();
+    return state_check();
   }
 
   VfStatus window_check(VfStatus status, bool gated) noexcept {
@@ -1265,6 +1529,7 @@ class VectorCalibrationFilter {
   Scalar last_nis_{0};
   Scalar noise_factor_{1};                       // replay damping (1 when running live)
   Vec3<Scalar> ref_dir_ = Vec3<Scalar>::Zero();  // reference update's direction (E-VF-4)
+  Block blk_{};                                  // E-VF-B (fold_samples > 1)
   // E-VF-10: running means over the live samples since the last (re)start.
   // E-VF-10: running means of the covariance matching over the live samples since the (re)start.
   std::uint32_t nz_n_ = 0;
@@ -1280,6 +1545,7 @@ void VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>::configure(
   cfg_.init_full_passes = std::max(cfg_.init_full_passes, 0);
   cfg_.nis_window = std::max(cfg_.nis_window, 10);
   cfg_.field_change_after = std::max(cfg_.field_change_after, 1);
+  cfg_.fold_samples = std::max(cfg_.fold_samples, 1);
   counters_ = VfCounters{};
   last_reset_ = VfResetReason::kNone;
   scale_ = cfg_.field_scale_nT > Scalar(0) ? cfg_.field_scale_nT : Scalar(0);
@@ -1335,11 +1601,20 @@ VfStatus VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>::update
   const Scalar dt = std::isfinite(in.interval_s) && in.interval_s >= Scalar(0)
                         ? in.interval_s
                         : cfg_.sample_interval_s;
-  add_process_noise(dt);
+  if (block_mode())
+    blk_.dt_s += dt;
+  else
+    add_process_noise(dt);
   if (settling_) remember(in, f, counters_.samples);
-  const VfStatus st = live_step(p);
+  const VfStatus st = block_mode() ? live_step_block(p) : live_step(p);
   if (settling_ && running_ && replay_n_ >= kReplayCapacity) return settle(st);
   return st;
+}
+
+template <typename Scalar, int kInitCapacity, int kReplayCapacity>
+VfStatus VectorCalibrationFilter<Scalar, kInitCapacity, kReplayCapacity>::flush() noexcept {
+  if (!running_ || blk_.live == 0) return VfStatus::kAccepted;
+  return fold_and_check();
 }
 
 template <typename Scalar, int kInitCapacity, int kReplayCapacity>

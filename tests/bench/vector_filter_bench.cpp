@@ -74,6 +74,7 @@ void BM_VectorFilterUpdate(benchmark::State& state) {
   cfg.mag_noise_nT = Scalar(0.3);
   cfg.attitude_noise_rad = deg_to_rad(Scalar(0.015));
   cfg.divergence_detection = false;
+  cfg.fold_samples = static_cast<int>(state.range(1));
   VectorCalibrationFilter<Scalar> filter(cfg);
   VfStart<Scalar> start;
   start.model = truth().template cast<Scalar>();
@@ -103,6 +104,7 @@ void BM_VectorFilterUpdate(benchmark::State& state) {
 
 }  // namespace
 
-// Arg: 1 with the scalar reference (one more scalar update per sample), 0 without.
-BENCHMARK_TEMPLATE(BM_VectorFilterUpdate, float)->Arg(0)->Arg(1);
-BENCHMARK_TEMPLATE(BM_VectorFilterUpdate, double)->Arg(0)->Arg(1);
+// Args: 1 with the scalar reference (one more scalar update per sample), 0 without; the samples
+// per information fold (docs/equations.md E-VF-B; 1: sequential updates per sample).
+BENCHMARK_TEMPLATE(BM_VectorFilterUpdate, float)->ArgsProduct({{0, 1}, {1, 16}});
+BENCHMARK_TEMPLATE(BM_VectorFilterUpdate, double)->ArgsProduct({{0, 1}, {1, 16}});

@@ -117,6 +117,9 @@ core::VectorCalibratorConfig<Scalar> make_cal_config(const sim::ScenarioConfig& 
   // 19-state filter's, ~2 300 instructions each on the M4F, plus their U^T products) become an
   // accumulation, and a fold every 16 samples costs about what two samples did.
   c.filter.fold_samples = 16;
+  // The output envelope's readiness check (~150 000 instructions) every 128 samples, 2.6 s at
+  // 50 Hz, instead of every 64: 1 200 instructions per sample less.
+  c.refresh_every = 128;
   return c;
 }
 const char* cal_code_name(std::uint8_t code) noexcept {

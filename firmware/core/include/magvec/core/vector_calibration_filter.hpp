@@ -865,6 +865,7 @@ class VectorCalibrationFilter {
   }
 
   // Whitened residual and Jacobian of a vector sample at the current estimate (E-VF-2, E-VF-3).
+  // rw and hw both null: only *ex (unwhitened Jacobian, prediction, covariance; no l).
   bool linearise(const Prepared& p, Vec3<Scalar>* rw, Mat<Scalar, 3, kStates>* hw,
                  LinExtras* ex = nullptr) const noexcept {
     const StateVec xf = lin_at_nominal_ ? nom_ : full();
@@ -920,6 +921,12 @@ class VectorCalibrationFilter {
     }
     const Mat3<Scalar> cov_mag = sm * sm * (pm * pm.transpose());
     const Mat3<Scalar> cov = cov_mag + sa * sa * (c * c.transpose());
+    if (ex != nullptr) {
+      ex->cov = cov;
+      ex->cov_mag = cov_mag;
+    }
+    // Without rw (the output envelope, E-VF-10) nothing is whitened.
+    if (rw == nullptr) return all_finite(cov);
     // Cholesky L L^T of the 3x3 covariance and forward substitution (no level-3 solver).
     Mat3<Scalar> l = Mat3<Scalar>::Zero();
     for (int j = 0; j < 3; ++j) {
@@ -937,11 +944,7 @@ class VectorCalibrationFilter {
     }
     *rw = lower_solve(l, r);
     *hw = lower_solve(l, h);
-    if (ex != nullptr) {
-      ex->cov = cov;
-      ex->cov_mag = cov_mag;
-      ex->l = l;
-    }
+    if (ex != nullptr) ex->l = l;
     return all_finite(*rw) && all_finite(*hw);
   }
 
@@ -1684,10 +1687,8 @@ VfOutputUncertainty<Scalar> VectorCalibrationFilter<
     p.omega.setZero();
     p.f = kNaN;
     p.dtemp = dtemp;
-    Vec3<Scalar> rw;
-    Mat<Scalar, 3, kStates> hw;
     LinExtras ex;
-    if (!linearise(p, &rw, &hw, &ex)) return;
+    if (!linearise(p, nullptr, nullptr, &ex)) return;
     Mat<Scalar, 3, kCalStates> hc;
     for (int i = 0; i < kCalStates; ++i)
       hc.col(i) = ex.h.col(kCalIndex[static_cast<std::size_t>(i)]);

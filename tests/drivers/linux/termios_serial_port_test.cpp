@@ -222,8 +222,12 @@ TEST_F(TermiosTest, UnplugReportsBusErrorAndReplugReconnects) {
   pty->write_all(hello);
   EXPECT_EQ(read_n(*port, hello.size()), hello);
 
-  // Unplug: the device disappears (master closed, its node and our symlink target gone).
+  // Unplug: the device disappears (master closed, its node and our symlink target gone), and with
+  // it the link, as udev removes a /dev/serial/by-id link. A stale link resolved to whatever pty
+  // the kernel numbered alike next: under a parallel ctest another test's, to which the port then
+  // "reconnected" (this test failed once that way).
   pty.reset();
+  fs::remove(link_);
   std::array<std::uint8_t, 16> buf{};
   std::size_t n = 0;
   EXPECT_EQ(port->read(buf, n, 100'000), hal::Status::kBusError);

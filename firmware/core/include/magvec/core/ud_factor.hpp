@@ -6,6 +6,7 @@
 #pragma once
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 
 #include "magvec/core/types.hpp"
@@ -28,6 +29,27 @@ Vec<Scalar, N> ud_ut_times(const Mat<Scalar, N, N>& u, const Vec<Scalar, N>& h,
     f(j) = acc;
   }
   return f;
+}
+
+// U^T h for the three rows of a vector measurement at once: each element of U is loaded once for
+// all three (the M4F's loads dominate the single product), each sum in ud_ut_times's order, so
+// the results are those of three ud_ut_times calls bit for bit.
+template <typename Scalar, int N>
+void ud_ut_times_rows(const Mat<Scalar, N, N>& u, const Mat<Scalar, 3, N>& h,
+                      std::array<Vec<Scalar, N>, 3>* f) noexcept {
+  Vec<Scalar, N>&f0 = (*f)[0], &f1 = (*f)[1], &f2 = (*f)[2];
+  for (int j = 0; j < N; ++j) {
+    Scalar a0 = h(0, j), a1 = h(1, j), a2 = h(2, j);
+    for (int i = 0; i < j; ++i) {
+      const Scalar uij = u(i, j);
+      a0 += uij * h(0, i);
+      a1 += uij * h(1, i);
+      a2 += uij * h(2, i);
+    }
+    f0(j) = a0;
+    f1(j) = a1;
+    f2(j) = a2;
+  }
 }
 
 // All of U finite, tested on the strict upper triangle only (the rest never changes): v * 0 is 0

@@ -1003,8 +1003,8 @@ class VectorCalibrationFilter {
     Vec3<Scalar> nu_prior;
     Scalar nis_max{0};
     const StateVec x_lin = lin_at_nominal_ ? StateVec::Zero() : x_;
+    ud_ut_times_rows<Scalar, kStates>(u_, hw, &f);
     for (int j = 0; j < 3; ++j) {
-      f[static_cast<std::size_t>(j)] = ut_times(hw.row(j).transpose());
       const StateVec& fj = f[static_cast<std::size_t>(j)];
       const Scalar sj = fj.dot(d_.cwiseProduct(fj)) + Scalar(1);
       const Scalar nuj = rw(j) + hw.row(j).dot(x_ - x_lin);
@@ -1043,11 +1043,17 @@ class VectorCalibrationFilter {
   // only.)
   void note_innovation(const LinExtras& ex, const std::array<StateVec, 3>& f,
                        const Vec3<Scalar>& y) noexcept {
+    // Symmetric: six products over D f_j, not nine over a fresh D f_j each.
+    std::array<StateVec, 3> df;
+    for (std::size_t j = 0; j < 3; ++j)
+      df[j] = d_.cwiseProduct(f[j]);
     Mat3<Scalar> hph;
-    for (int i = 0; i < 3; ++i)
-      for (int j = 0; j < 3; ++j)
-        hph(i, j) =
-            f[static_cast<std::size_t>(i)].dot(d_.cwiseProduct(f[static_cast<std::size_t>(j)]));
+    for (std::size_t i = 0; i < 3; ++i)
+      for (std::size_t j = i; j < 3; ++j) {
+        const Scalar v = f[i].dot(df[j]);
+        hph(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j)) = v;
+        hph(static_cast<Eigen::Index>(j), static_cast<Eigen::Index>(i)) = v;
+      }
     // A sample whose predicted innovation is mostly the state's uncertainty (just after a start,
     // or a state released with its prior) says little about the noise and much about how well
     // that uncertainty is known: skipped while the state part exceeds the noise part (tr 3).
@@ -1106,7 +1112,7 @@ class VectorCalibrationFilter {
     return std::isfinite(out->lm) && std::isfinite(out->la);
   }
 
-  static constexpr int kFoldNoiseEvery = 4;
+  static constexpr int kFoldNoiseEvery = 2;
   // Samples accumulated since the last fold (E-VF-B).
   struct Block {
     int live = 0;                                                  // live samples (gated too)
@@ -1209,7 +1215,7 @@ class VectorCalibrationFilter {
     }
     if (held_[kRmHeading]) ++counters_.heading_held;
     // E-VF-10 takes every kFoldNoiseEvery-th sample (its U^T products and statistics cost about
-    // what the rest of the sample does): a quarter of the information for the noise figures.
+    // a third of the rest of the sample): half the information for the noise figures.
     const bool noise_sample = blk_.live % kFoldNoiseEvery == 0;
     Vec3<Scalar> rw;
     Mat<Scalar, 3, kStates> hw;
@@ -1222,9 +1228,9 @@ class VectorCalibrationFilter {
     Scalar nis = rw.cwiseAbs2().maxCoeff();
     std::array<StateVec, 3> f;
     if (noise_sample || (cfg_.gate_nis > Scalar(0) && !(nis <= cfg_.gate_nis))) {
+      ud_ut_times_rows<Scalar, kStates>(u_, hw, &f);
       nis = Scalar(0);
       for (int j = 0; j < 3; ++j) {
-        f[static_cast<std::size_t>(j)] = ut_times(hw.row(j).transpose());
         const StateVec& fj = f[static_cast<std::size_t>(j)];
         nis = std::max(nis, rw(j) * rw(j) / (fj.dot(d_.cwiseProduct(fj)) + Scalar(1)));
       }

@@ -99,7 +99,10 @@ void ud_add_diagonal_noise(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, int k, Scala
 // unnormalised gain k (K = k / s) into *k_out (not f or d), the innovation variance
 // s = h P h^T + r into *s_out. `first`: f is zero before it (ud_ut_times with the same `first`);
 // the steps before it change nothing and are skipped (the gain still has every component).
-template <typename Scalar, int N>
+// kSkipZero: also skip the later steps whose f(j) is 0 (exact no-ops: lambda = v(j) = 0, d(j)
+// unchanged), worth its test per step where states go unmeasured and uncorrelated (the vector
+// filter's temperature coefficients without a temperature input), not in the 9-state EKF.
+template <typename Scalar, int N, bool kSkipZero = false>
 void ud_bierman_update(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, const Vec<Scalar, N>& f, Scalar r,
                        Vec<Scalar, N>* k_out, Scalar* s_out, int first = 0) noexcept {
   const Vec<Scalar, N> v = d.cwiseProduct(f);
@@ -114,6 +117,12 @@ void ud_bierman_update(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, const Vec<Scalar
   d(first) *= r / alpha;
   k(first) = v(first);
   for (int j = first + 1; j < N; ++j) {
+    if constexpr (kSkipZero) {
+      if (f(j) == Scalar(0)) {
+        k(j) = Scalar(0);
+        continue;
+      }
+    }
     const Scalar beta = alpha;
     alpha += f(j) * v(j);
     const Scalar lambda = -f(j) / beta;

@@ -1291,14 +1291,20 @@ class VectorCalibrationFilter {
       blk_.see += e.cwiseProduct(e);
       // The lower triangle column by column: column i of g and the three rows of dh from i on
       // are contiguous (column-major), the M4F's loads and stores stay sequential.
+      // Zero columns add nothing: a held state is skipped, and trailing ones (the temperature
+      // coefficients without a temperature input, the last three states) end the loops early.
       const Scalar* dp = dh.data();
-      for (std::ptrdiff_t i = 0; i < kStates; ++i) {
+      std::ptrdiff_t end = kStates;
+      while (end > 0 && dp[3 * end - 3] == Scalar(0) && dp[3 * end - 2] == Scalar(0) &&
+             dp[3 * end - 1] == Scalar(0))
+        --end;
+      for (std::ptrdiff_t i = 0; i < end; ++i) {
         const Scalar* di = dp + 3 * i;
         const Scalar a0 = di[0], a1 = di[1], a2 = di[2];
         if (a0 == Scalar(0) && a1 == Scalar(0) && a2 == Scalar(0)) continue;  // a held state
         blk_.gy(i) += a0 * e(0) + a1 * e(1) + a2 * e(2);
         Scalar* gc = &blk_.g(0, i);
-        for (std::ptrdiff_t j = i; j < kStates; ++j, di += 3)
+        for (std::ptrdiff_t j = i; j < end; ++j, di += 3)
           gc[j] += a0 * di[0] + a1 * di[1] + a2 * di[2];
       }
     }
@@ -1312,7 +1318,7 @@ class VectorCalibrationFilter {
     const StateVec fv = ud_ut_times<Scalar, kStates>(u_, h, first);
     StateVec k;
     Scalar s;
-    ud_bierman_update<Scalar, kStates>(u_, d_, fv, r, &k, &s, first);
+    ud_bierman_update<Scalar, kStates, true>(u_, d_, fv, r, &k, &s, first);
     x_ += k * (nu / s);
     return nu * nu / s;
   }
@@ -1476,7 +1482,7 @@ class VectorCalibrationFilter {
   // Bierman's scalar update for f = U^T h and variance r: unnormalised gain k into *k_out (the
   // caller's local, not f) and s = h P h^T + r into *s_out.
   void bierman(const StateVec& f, Scalar r, StateVec* k_out, Scalar* s_out) noexcept {
-    ud_bierman_update<Scalar, kStates>(u_, d_, f, r, k_out, s_out);
+    ud_bierman_update<Scalar, kStates, true>(u_, d_, f, r, k_out, s_out);
   }
   bool ud_factorise(const StateMat& p) noexcept {
     return core::ud_factorise<Scalar, kStates>(p, &u_, &d_);

@@ -1291,21 +1291,36 @@ class VectorCalibrationFilter {
       blk_.see += e.cwiseProduct(e);
       // The lower triangle column by column: column i of g and the three rows of dh from i on
       // are contiguous (column-major), the M4F's loads and stores stay sequential.
-      // Zero columns add nothing: a held state is skipped, and trailing ones (the temperature
-      // coefficients without a temperature input, the last three states) end the loops early.
+      // Zero columns add nothing: trailing ones (the temperature coefficients without a
+      // temperature input, the last three states) end the loops early.
       const Scalar* dp = dh.data();
       std::ptrdiff_t end = kStates;
       while (end > 0 && dp[3 * end - 3] == Scalar(0) && dp[3 * end - 2] == Scalar(0) &&
              dp[3 * end - 1] == Scalar(0))
         --end;
-      for (std::ptrdiff_t i = 0; i < end; ++i) {
+      // Two columns per pass: each row of dh below them is loaded once for both (each entry is
+      // still summed in the same order).
+      std::ptrdiff_t i = 0;
+      for (; i + 1 < end; i += 2) {
         const Scalar* di = dp + 3 * i;
         const Scalar a0 = di[0], a1 = di[1], a2 = di[2];
-        if (a0 == Scalar(0) && a1 == Scalar(0) && a2 == Scalar(0)) continue;  // a held state
+        const Scalar b0 = di[3], b1 = di[4], b2 = di[5];
         blk_.gy(i) += a0 * e(0) + a1 * e(1) + a2 * e(2);
-        Scalar* gc = &blk_.g(0, i);
-        for (std::ptrdiff_t j = i; j < end; ++j, di += 3)
-          gc[j] += a0 * di[0] + a1 * di[1] + a2 * di[2];
+        blk_.gy(i + 1) += b0 * e(0) + b1 * e(1) + b2 * e(2);
+        Scalar* ga = &blk_.g(0, i);
+        Scalar* gb = &blk_.g(0, i + 1);
+        ga[i] += a0 * a0 + a1 * a1 + a2 * a2;
+        di += 3;
+        for (std::ptrdiff_t j = i + 1; j < end; ++j, di += 3) {
+          const Scalar c0 = di[0], c1 = di[1], c2 = di[2];
+          ga[j] += a0 * c0 + a1 * c1 + a2 * c2;
+          gb[j] += b0 * c0 + b1 * c1 + b2 * c2;
+        }
+      }
+      if (i < end) {
+        const Scalar* di = dp + 3 * i;
+        blk_.gy(i) += di[0] * e(0) + di[1] * e(1) + di[2] * e(2);
+        blk_.g(i, i) += di[0] * di[0] + di[1] * di[1] + di[2] * di[2];
       }
     }
     ++blk_.n;

@@ -281,6 +281,8 @@ class VectorCalibrationFilter {
   Scalar field_scale_nT() const noexcept { return scale_; }
   bool heading_held() const noexcept { return held_[kRmHeading]; }
   Scalar tilt_spread_deg() const noexcept { return rad_to_deg(tilt_spread_rad()); }
+  // The last vector sample's largest NIS at the prior (in folds: at R alone, an upper bound, unless
+  // the gate or the noise estimate needed the exact figure; E-VF-B).
   Scalar last_nis() const noexcept { return last_nis_; }
   Scalar temperature_ref_degC() const noexcept { return t0_; }
   int startup_samples() const noexcept { return static_cast<int>(batch_.store().size()); }

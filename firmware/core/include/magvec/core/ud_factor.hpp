@@ -14,11 +14,13 @@
 namespace magvec::core {
 
 // U^T h: N(N-1)/2 multiply-adds instead of the N^2 of a full product (per sample, in every update).
-// `first`: h is zero before it (a sparse row, a pseudo-measurement of an information fold), so is
-// U^T h (U is upper triangular) and only the trailing block is computed.
-template <typename Scalar, int N>
+// kSparse, `first`: h is zero before it (a sparse row, a pseudo-measurement of an information
+// fold), so is U^T h (U is upper triangular) and only the trailing block is computed. Without
+// kSparse `first` is 0 at compile time: a dense caller pays nothing for it.
+template <typename Scalar, int N, bool kSparse = false>
 Vec<Scalar, N> ud_ut_times(const Mat<Scalar, N, N>& u, const Vec<Scalar, N>& h,
                            int first = 0) noexcept {
+  if constexpr (!kSparse) first = 0;
   Vec<Scalar, N> f;
   for (int j = 0; j < first; ++j)
     f(j) = Scalar(0);
@@ -97,14 +99,16 @@ void ud_add_diagonal_noise(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, int k, Scala
 
 // Bierman's scalar update of U, D for a measurement with f = U^T h^T and variance r: the
 // unnormalised gain k (K = k / s) into *k_out (not f or d), the innovation variance
-// s = h P h^T + r into *s_out. `first`: f is zero before it (ud_ut_times with the same `first`);
-// the steps before it change nothing and are skipped (the gain still has every component).
-// kSkipZero: also skip the later steps whose f(j) is 0 (exact no-ops: lambda = v(j) = 0, d(j)
-// unchanged), worth its test per step where states go unmeasured and uncorrelated (the vector
-// filter's temperature coefficients without a temperature input), not in the 9-state EKF.
-template <typename Scalar, int N, bool kSkipZero = false>
+// s = h P h^T + r into *s_out. kSparse (the vector filter): f is zero before `first` (ud_ut_times
+// with the same `first`), and those steps change nothing and are skipped (the gain still has every
+// component); so are the later steps whose f(j) is 0 (exact no-ops: lambda = v(j) = 0, d(j)
+// unchanged: states unmeasured and uncorrelated, the temperature coefficients without a
+// temperature input). Without kSparse (the 9-state EKF) `first` is 0 at compile time and no step
+// is tested.
+template <typename Scalar, int N, bool kSparse = false>
 void ud_bierman_update(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, const Vec<Scalar, N>& f, Scalar r,
                        Vec<Scalar, N>* k_out, Scalar* s_out, int first = 0) noexcept {
+  if constexpr (!kSparse) first = 0;
   const Vec<Scalar, N> v = d.cwiseProduct(f);
   // Built in place, not zeroed: k(j) is set at step j, before any later step adds to it (zeroing
   // a local and copying it out were two library calls on the M4F's per-sample path: 120
@@ -117,7 +121,7 @@ void ud_bierman_update(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, const Vec<Scalar
   d(first) *= r / alpha;
   k(first) = v(first);
   for (int j = first + 1; j < N; ++j) {
-    if constexpr (kSkipZero) {
+    if constexpr (kSparse) {
       if (f(j) == Scalar(0)) {
         k(j) = Scalar(0);
         continue;

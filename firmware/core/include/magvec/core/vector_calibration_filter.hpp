@@ -1266,7 +1266,7 @@ class VectorCalibrationFilter {
     if (!(ref_dir_.squaredNorm() > Scalar(0))) ref_dir_ = hn / n;
     StateVec h = StateVec::Zero();
     h.template segment<3>(kHn0) = ref_dir_;
-    const StateVec fv = ud_ut_times<Scalar, kStates>(u_, h, kHn0);
+    const StateVec fv = ud_ut_times<Scalar, kStates, true>(u_, h, kHn0);
     const Scalar sf = reference_sigma();
     *nu = f - ref_dir_.dot(hn);
     const Scalar nis = *nu * *nu / (fv.dot(d_.cwiseProduct(fv)) + sf * sf);
@@ -1332,7 +1332,7 @@ class VectorCalibrationFilter {
   Scalar pseudo_update(const StateVec& h, Scalar z, Scalar r, int first,
                        const StateVec& x_lin) noexcept {
     const Scalar nu = z - h.dot(x_ - x_lin);
-    const StateVec fv = ud_ut_times<Scalar, kStates>(u_, h, first);
+    const StateVec fv = ud_ut_times<Scalar, kStates, true>(u_, h, first);
     StateVec k;
     Scalar s;
     ud_bierman_update<Scalar, kStates, true>(u_, d_, fv, r, &k, &s, first);

@@ -981,7 +981,8 @@ class VectorCalibrationFilter {
     h.template segment<3>(kHn0) = ref_dir_;
     const Scalar r = sf * sf;
     const Scalar nu = f - ref_dir_.dot(hn_now);
-    const StateVec fv = ut_times(h);
+    // The row is h_n only: U^T h from kHn0 on, as reference_check takes it in folds.
+    const StateVec fv = ud_ut_times<Scalar, kStates, true>(u_, h, kHn0);
     const Scalar s_pred = fv.dot(d_.cwiseProduct(fv)) + r;
     const Scalar nis = nu * nu / s_pred;
     if (gate && cfg_.gate_nis > Scalar(0) && !(nis <= cfg_.gate_nis)) return false;

@@ -532,14 +532,24 @@ class Rig {
       const std::uint64_t due_us = pending_.front().due_us;
       const double t_epoch_s = static_cast<double>(due_us) * 1e-6;
       wake_before(t_epoch_s);
-      // The epoch's frames, its last one (the attitude, whose receive time stamps the epoch) on
-      // time.
+      // The epoch's frames in bus order, its attitude frame (whose receive time stamps the
+      // epoch) on time: the frames before it go early, those after it (the position, every few
+      // epochs) right behind it.
+      std::size_t in_epoch = 0, attitude_at = 0;
+      bool has_attitude = false;
+      while (in_epoch < pending_.size() && pending_[in_epoch].due_us == due_us) {
+        if (pending_[in_epoch].frame.id == attitude_id_) {
+          attitude_at = in_epoch;
+          has_attitude = true;
+        }
+        ++in_epoch;
+      }
       std::uint32_t sent = 0;
       std::uint64_t due = 0, send_us = 0;
-      while (!pending_.empty() && pending_.front().due_us == due_us) {
+      for (std::size_t i = 0; i < in_epoch; ++i) {
         const magvec::hal::CanFrame f = pending_.front().frame;
         pending_.pop_front();
-        const bool attitude = pending_.empty() || pending_.front().due_us != due_us;
+        const bool attitude = i == attitude_at;
         if (attitude) due = on_time(t_epoch_s);
         const std::uint64_t t_send_us = mono_ns() / 1000;
         if (can_.send(f) == magvec::hal::Status::kOk) ++sent;
@@ -551,7 +561,7 @@ class Rig {
           std::llround((static_cast<double>(due_us) - kInsLatencyUs) * 1e-6 * kInsRateHz));
       if (run_.epochs_sent.size() <= n) run_.epochs_sent.resize(n + 1);
       run_.epochs_sent[n] = VmRun::EpochSent{due / 1000, 0, send_us};
-      awaiting_stamp_.push_back(n);
+      if (has_attitude) awaiting_stamp_.push_back(n);  // the listener pairs attitude frames
       drain_listener(0);
     }
   }

@@ -131,8 +131,14 @@ Scalar rotation_angle_between(const Mat3<Scalar>& r_a, const Mat3<Scalar>& r_b) 
   return std::atan2(s, c);
 }
 
-// Rotation rate in n-frame axes from a body rate (gyro): Omega = R_bn^T omega_b (E-TO-1; the vector
-// filter E-VF-5).
+// [v x]: the matrix of the cross product, [v x] u = v x u.
+template <typename Scalar>
+Mat3<Scalar> skew(const Vec3<Scalar>& v) noexcept {
+  Mat3<Scalar> m;
+  m << Scalar(0), -v(2), v(1), v(2), Scalar(0), -v(0), -v(1), v(0), Scalar(0);
+  return m;
+}
+
 // Active rotation matrix of a rotation vector v = a k (Rodrigues): Exp(a [k x]).
 template <typename Scalar>
 Mat3<Scalar> exp_so3(const Vec3<Scalar>& v) noexcept {
@@ -141,6 +147,8 @@ Mat3<Scalar> exp_so3(const Vec3<Scalar>& v) noexcept {
   return Eigen::AngleAxis<Scalar>(a, v / a).toRotationMatrix();
 }
 
+// Rotation rate in n-frame axes from a body rate (gyro): Omega = R_bn^T omega_b (E-TO-1; the vector
+// filter E-VF-5).
 template <typename Scalar>
 Vec3<Scalar> rate_n_from_body(const Mat3<Scalar>& r_bn, const Vec3<Scalar>& omega_b) noexcept {
   return r_bn.transpose() * omega_b;

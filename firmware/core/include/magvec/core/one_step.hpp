@@ -24,6 +24,7 @@
 #include <limits>
 
 #include "magvec/core/ellipsoid_fit.hpp"
+#include "magvec/core/frames.hpp"
 #include "magvec/core/misalignment.hpp"
 #include "magvec/core/output_envelope.hpp"
 #include "magvec/core/sample_store.hpp"
@@ -555,7 +556,7 @@ class OneStepFit {
         c.col(1) = a1.cross(hw);
         c.col(2) = Vec3<Scalar>(r.row(1).transpose()).cross(hw);
       } else {
-        c << Scalar(0), -hw(2), hw(1), hw(2), Scalar(0), -hw(0), -hw(1), hw(0), Scalar(0);
+        c = skew(hw);
       }
       c *= std::sqrt(s.att_var);  // an interpolated attitude averages two records' noise
       const Mat3<Scalar> cov = sm2 * (pw * pw.transpose()) + sa2 * (c * c.transpose());

@@ -860,12 +860,6 @@ class VectorCalibrationFilter {
   }
 
   // ---- measurement model ---------------------------------------------------------------------
-  static Mat3<Scalar> skew(const Vec3<Scalar>& v) noexcept {
-    Mat3<Scalar> s;
-    s << Scalar(0), -v(2), v(1), v(2), Scalar(0), -v(0), -v(1), v(0), Scalar(0);
-    return s;
-  }
-
   // Whitened residual and Jacobian of a vector sample at the current estimate (E-VF-2, E-VF-3).
   // rw and hw both null: only *ex (unwhitened Jacobian, prediction, covariance; no l).
   bool linearise(const Prepared& p, Vec3<Scalar>* rw, Mat<Scalar, 3, kStates>* hw,

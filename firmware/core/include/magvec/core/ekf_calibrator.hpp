@@ -19,7 +19,9 @@
 // CalibratorAdd::kGated, non-finite sample or unusable reference -> kRejected, else kUsed.
 // ready(): the filter is initialised, has made >= min_updates accepted updates since begin(), the
 // predicted 1-sigma of the calibrated intensity at the last sample is <= max_sigma_f_nT, and (with
-// align) the alignment store holds >= min_align_samples samples.
+// align) the alignment store holds >= min_align_samples samples. That 1-sigma is the filter's
+// own and optimistic (1.6-3x over the survey envelope, docs/equations.md E-Acc-3): it gates the
+// solve, while the records' sigma_F comes from the held-out validation.
 // Heap-free, noexcept, Scalar-templated (float and double).
 #pragma once
 

@@ -1241,11 +1241,13 @@ TEST_F(MagvecdVm, InterpolatedOutputsWithinTheTrueFloor) {
   // 0.3 >= 4 / sqrt(2 n) for n >= 89). A slow emulator delivers fewer on time (the rig's own
   // timing, > kRigTimeErrorUs); below this the daemon cannot be judged.
   constexpr std::uint64_t kMinScored = 100;
-  if (judged) {
-    ASSERT_GE(enu.n, kMinScored) << "too few conversions delivered on time to judge the daemon";
-  }
   EXPECT_EQ(flagged, 0u) << "calibrated outputs without an interpolated attitude although the "
                             "INS epoch after them was in within the horizon";
+  if (judged) {
+    ASSERT_GE(enu.n, kMinScored) << "too few calibrated outputs to score: " << off_time
+                                 << " delivered off time by the rig, " << flagged
+                                 << " flagged by the daemon";
+  }
   const char* names[3] = {"E", "N", "U"};
   for (int k = 0; k < 3; ++k) {
     std::printf("%s: RMS error %.2f nT, floor %.2f nT, ratio %.3f (all %llu: %.3f)\n", names[k],

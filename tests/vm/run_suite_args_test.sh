@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # toolchain/vm/run-suite refuses bad --file and --bin arguments and a bad MAGVEC_VM_CLOCK before
-# it builds or boots anything: exit 2, a message naming the argument and what is wrong, no work directory created.
+# it builds or boots anything: exit 2, a message naming the argument and what is wrong, no work
+# directory created.
 # Usage: run_suite_args_test.sh RUN_SUITE
 set -u
 run_suite=$1

@@ -39,7 +39,9 @@ struct ScriptedCalibrator {
   }
   double progress() const noexcept { return static_cast<double>(used) / needed; }
   bool ready() const noexcept { return used >= needed; }
+  std::uint32_t solves{0};
   core::CalibratorSolve solve(core::SensorModel<double>* out) noexcept {
+    ++solves;
     *out = result;
     return {true, 0};
   }
@@ -205,6 +207,57 @@ TEST(HilSession, WrongCandidateFailsValidationAndStaysUncalibrated) {
   EXPECT_EQ(hil.loop().failure(), core::CalFailure::kValidationFailed);
   EXPECT_EQ(sink.records.back().cal_id, 0u);
   EXPECT_NE(sink.records.back().flags & core::kOutUncalibrated, 0u);
+}
+
+// The MCU image's rule (HilConfig::solve_install_records, pipeline::SolveSchedule): the loop
+// raises a ticket on one record, keeps compensating with the active (identity) model for exactly
+// N more records and installs the solve's result on the N-th; the held-out validation then
+// applies it. Inline (0), the loop solves on the record after the ticket's.
+TEST(HilSession, SolveResultGoesInAFixedNumberOfRecordsAfterTheTicket) {
+  for (const std::uint32_t n : {0u, 8u, 40u}) {
+    SCOPED_TRACE(n);
+    ScenarioConfig sc = survey_minutes(0.5);
+    Simulator sim(sc, 5);
+    const SimRigConfig rc = spi_rig();
+    ScriptedCalibrator cal;
+    cal.result = sc.truth;
+    cal.needed = 1500;
+    // Record by record: the loop's state and ticket as each record reached the sink.
+    struct StateSink final : hal::RecordSink {
+      const core::SensorLoop<double, ScriptedCalibrator>* loop{nullptr};
+      std::vector<core::CalState> states;
+      std::uint32_t ticket_record{0};
+      hal::Status emit(const hal::OutputRecord&) noexcept override {
+        states.push_back(loop->state());
+        if (ticket_record == 0 && loop->solve_ticket() == 1)
+          ticket_record = static_cast<std::uint32_t>(states.size());
+        return hal::Status::kOk;
+      }
+    } sink;
+    sink.states.reserve(7000);
+    HilConfig hc = hil_config();
+    hc.solve_install_records = n;
+    HilSession<ScriptedCalibrator> hil(sim, rc, cal, sink, hc);
+    sink.loop = &hil.loop();
+    ASSERT_EQ(hil.init(), hal::Status::kOk);
+    hil.run();
+    const std::vector<core::CalState>& states = sink.states;
+    const std::uint32_t ticket_record = sink.ticket_record;
+    ASSERT_GT(ticket_record, 0u);
+    ASSERT_GT(states.size(), ticket_record + n);
+    EXPECT_EQ(cal.solves, 1u);
+    EXPECT_EQ(hil.loop().state(), core::CalState::kApplied);
+    if (n == 0) {
+      // Inline: the loop solves on the sample after the ticket's.
+      EXPECT_EQ(states[ticket_record - 1], core::CalState::kSolving);
+      EXPECT_EQ(states[ticket_record], core::CalState::kValidating);
+      continue;
+    }
+    // Records ticket .. ticket + n - 1 (1-based) leave in kSolving, the next ones validating.
+    for (std::uint32_t k = ticket_record; k < ticket_record + n; ++k)
+      EXPECT_EQ(states[k - 1], core::CalState::kSolving) << "record " << k;
+    EXPECT_EQ(states[ticket_record + n - 1], core::CalState::kValidating);
+  }
 }
 
 TEST(HilSession, SerialLinkCountsGarbageChecksumsAndMissingLines) {

@@ -22,6 +22,7 @@
 #include "magvec/hal/magnetometer_source.hpp"
 #include "magvec/hal/record_sink.hpp"
 #include "magvec/pipeline/device_pipeline.hpp"
+#include "magvec/pipeline/solve_schedule.hpp"
 
 namespace magvec::host::hil {
 
@@ -42,6 +43,10 @@ struct HilConfig {
   bool adopt_calibration_time_offset{true};
   bool require_attitude_valid{true};
   bool start_calibration{true};
+  // 0: the loop runs its calibrator's solve inline. N > 0: the MCU image's rule
+  // (pipeline::SolveSchedule): the solve's result goes in N records after the one that raised the
+  // ticket, so a run reproduces the image's records (`magvec run --profile mcu`).
+  std::uint32_t solve_install_records{0};
 };
 
 using HilCounters = pipeline::DeviceCounters;
@@ -60,14 +65,14 @@ class LoopCore {
   LoopCore(Calibrator& calibrator, hal::RecordSink& sink, const HilConfig& config,
            double mag_rate_hz, double ins_rate_hz) noexcept
       : config_(config),
+        calibrator_(calibrator),
         device_(calibrator, pipeline_config(config, mag_rate_hz, ins_rate_hz),
                 config.require_attitude_valid),
-        sink_(sink) {}
+        sink_(sink),
+        schedule_(config.solve_install_records) {}
 
   // One INS sample as the attitude driver delivered it (may emit records it makes ready).
-  void on_attitude(const hal::AttitudeSample& a) noexcept {
-    device_.on_attitude(a, device_.emit_to(sink_));
-  }
+  void on_attitude(const hal::AttitudeSample& a) noexcept { device_.on_attitude(a, emit()); }
 
   // A magnetometer read that failed (CRC, malformed...): counted, no record.
   void on_read_error() noexcept { device_.on_read_error(); }
@@ -75,11 +80,11 @@ class LoopCore {
   // One magnetometer sample as the driver delivered it, with the scalar reference |h| (NaN when
   // none). Exactly one record per sample reaches the sink, once the sample is processed.
   void on_magnetometer(const hal::MagnetometerSample& s, double f_ref_nT) noexcept {
-    device_.on_magnetometer(s, f_ref_nT, device_.emit_to(sink_));
+    device_.on_magnetometer(s, f_ref_nT, emit());
   }
 
   // Emits every pending record (end of the stream, before a new session).
-  void flush() noexcept { device_.flush(device_.emit_to(sink_)); }
+  void flush() noexcept { device_.flush(emit()); }
 
   void set_time_offset_us(std::int64_t offset_us) noexcept {
     device_.set_time_offset_us(offset_us);
@@ -111,12 +116,35 @@ class LoopCore {
     p.horizon_us = c.horizon_us;
     p.mag_period_us = pipeline::period_us_from_hz(mag_rate_hz);
     p.ins_period_us = pipeline::period_us_from_hz(ins_rate_hz);
+    if (c.solve_install_records > 0) p.loop.external_solve = true;
     return p;
   }
 
+  // The emit callback: each record to the sink; with solve_install_records, the schedule's
+  // ticket and install checks first, on every record as the MCU image makes them.
+  auto emit() noexcept {
+    return [this](const core::OutputRecord<double>& r) noexcept {
+      ++records_;
+      if (schedule_.install_after_records() > 0) run_schedule();
+      device_.emit_to(sink_)(r);
+    };
+  }
+  void run_schedule() noexcept {
+    auto& lp = device_.loop();
+    (void)schedule_.raised(lp, records_);
+    if (!schedule_.due(records_)) return;
+    core::SensorModel<double> model;
+    const core::CalibratorSolve r = calibrator_.solve(&model);
+    schedule_.installed();
+    (void)lp.install_solve(schedule_.ticket(), r, model);
+  }
+
   HilConfig config_;
+  Calibrator& calibrator_;
   Device device_;
   hal::RecordSink& sink_;
+  pipeline::SolveSchedule schedule_;
+  std::uint32_t records_{0};
 };
 
 // The `--calibrator none` choice; it is not started (HilConfig::start_calibration = false).

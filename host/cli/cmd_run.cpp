@@ -14,16 +14,23 @@
 //         E-VF: W, o, Rm, field, time offset, temperature coefficients from every sample; the noise
 //         is estimated first unless --noise-nT and --ins-noise-deg are both given);
 //   none  no calibration runs (flagged uncalibrated while cal_id = 0).
+// --profile mcu, instead of --sim and the options that configure a run: the MCU image's run
+// (firmware/app/include/magvec/app/image_profile.hpp: its scenario and seed, rig, EKF calibrator,
+// pipeline, and its rule of installing a solve a fixed number of records after the ticket). The
+// host build has the images' numerics (docs/architecture.md#numerics), so the records are
+// bit-identical to the M7 double image's and its host twin's (tests/mcu/compare_app_runs.py).
 #include <CLI/CLI.hpp>
 #include <cmath>
 #include <iostream>
 #include <limits>
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "calibration/calibration_file.hpp"
 #include "commands.hpp"
 #include "fault_spec.hpp"
+#include "magvec/app/image_profile.hpp"
 #include "magvec/core/batch_li_calibrator.hpp"
 #include "magvec/core/ekf_calibrator.hpp"
 #include "magvec/core/vector_calibrator.hpp"
@@ -36,6 +43,7 @@ namespace magvec::host::cli {
 namespace {
 
 struct RunOptions {
+  std::string profile;
   std::string scenario;
   double duration_s = 0;
   std::uint64_t seed = 1;
@@ -55,7 +63,6 @@ struct RunOptions {
 };
 
 using LiCal = host::hil::LiCalibrator;
-using EkfCal = host::hil::EkfLoopCalibrator;
 using VecCal = host::hil::VectorLoopCalibrator;
 
 // Calibrator-specific part of the summary.
@@ -65,7 +72,9 @@ std::string solver_reason(const host::hil::NullCalibrator&, std::uint8_t) {
 std::string solver_reason(const LiCal&, std::uint8_t code) {
   return core::verdict_name(static_cast<core::Verdict>(code));
 }
-std::string solver_reason(const EkfCal&, std::uint8_t code) {
+template <std::size_t AlignCapacity, int InitCapacity>
+std::string solver_reason(const core::EkfCalibrator<double, AlignCapacity, InitCapacity>&,
+                          std::uint8_t code) {
   return core::ekf_cal_code_name(code);
 }
 std::string solver_reason(const VecCal&, std::uint8_t code) {
@@ -89,7 +98,9 @@ void describe(const LiCal& cal, std::ostream& os) {
      << ", Kof [nT] " << r.li.kof.transpose() << ", Rm [deg] " << (r.li.rm_rad * deg).transpose()
      << ", h_n [nT] " << r.h_n_nT.transpose() << "\n";
 }
-void describe(const EkfCal& cal, std::ostream& os) {
+template <std::size_t AlignCapacity, int InitCapacity>
+void describe(const core::EkfCalibrator<double, AlignCapacity, InitCapacity>& cal,
+              std::ostream& os) {
   const auto& c = cal.filter().counters();
   os << "  ekf calibrator: updates " << c.updates << ", gated " << c.gated << ", rejected "
      << c.rejected_nonfinite + c.rejected_reference << ", reinitialisations " << c.reinitialisations
@@ -137,13 +148,16 @@ void describe(const VecCal& cal, std::ostream& os) {
 }
 
 template <typename Calibrator>
-void run_session(const RunOptions& o, drivers::sim::Simulator& sim,
+void run_session(const RunOptions& o, std::uint64_t seed, drivers::sim::Simulator& sim,
                  const drivers::sim::SimRigConfig& rc, Calibrator& cal,
                  const host::hil::HilConfig& hc) {
   host::hil::CsvRecordSink sink(
       o.out,
-      {"magvec run --sim " + o.scenario + " seed " + std::to_string(o.seed) + " link " + o.link +
-       " calibrator " + o.calibrator + (o.faults.empty() ? "" : " faults " + o.faults)});
+      {o.profile.empty() ? "magvec run --sim " + o.scenario + " seed " + std::to_string(seed) +
+                               " link " + o.link + " calibrator " + o.calibrator +
+                               (o.faults.empty() ? "" : " faults " + o.faults)
+                         : "magvec run --profile " + o.profile + " (scenario " + sim.config().name +
+                               " seed " + std::to_string(seed) + " link spi calibrator ekf)"});
   auto session = std::make_unique<host::hil::HilSession<Calibrator>>(sim, rc, cal, sink, hc);
   if (!o.calibration.empty()) {
     const CalibrationFile file = read_calibration_file(o.calibration);
@@ -164,9 +178,10 @@ void run_session(const RunOptions& o, drivers::sim::Simulator& sim,
   const auto& adc = rig.adc().injected();
   const auto& ser = rig.serial().injected();
   const auto& ins = rig.ins().injected();
-  std::cout << "magvec run: " << sim.config().name << ", seed " << o.seed << ", link " << o.link
-            << ", calibrator " << o.calibrator << ": " << c.records << " records -> " << o.out
-            << "\n";
+  std::cout << "magvec run: " << sim.config().name << ", seed " << seed << ", link "
+            << (rc.link == drivers::sim::MagLink::kSpi ? "spi" : "serial") << ", calibrator "
+            << (o.profile.empty() ? o.calibrator : "ekf (profile " + o.profile + ")") << ": "
+            << c.records << " records -> " << o.out << "\n";
   std::cout << "  magnetometer: steps " << c.steps << ", samples " << mc.samples << ", crc errors "
             << mc.crc_errors << ", malformed " << mc.malformed << ", garbage bytes "
             << mc.garbage_bytes << ", saturated " << mc.saturated << ", stuck " << mc.stuck
@@ -216,7 +231,32 @@ void run_session(const RunOptions& o, drivers::sim::Simulator& sim,
             << rig.clock_jumps_injected() << "\n";
 }
 
+// The MCU image's run (see the top): its configuration, one definition with the image's.
+void run_mcu_profile(const RunOptions& o) {
+  const drivers::sim::ScenarioConfig sc = app::make_scenario();
+  const drivers::sim::SimRigConfig rc = app::make_rig_config();
+  drivers::sim::Simulator sim(sc, app::kSeed);
+  const core::PipelineConfig<double> pc = app::pipeline_config<double>(sc, false);
+  host::hil::HilConfig hc;
+  hc.loop = pc.loop;
+  hc.buffer = pc.buffer;
+  hc.ins_latency_comp_us = pc.ins_latency_us;
+  hc.horizon_us = pc.horizon_us;
+  hc.time_offset_us = pc.time_offset_us;
+  hc.adopt_calibration_time_offset = pc.adopt_calibration_time_offset;
+  hc.solve_install_records = app::kSolveInstallRecords;
+  hc.start_calibration = true;
+  auto cal =
+      std::make_unique<app::EkfImageCalibrator<double>>(app::ekf_calibrator_config<double>(sc));
+  run_session(o, app::kSeed, sim, rc, *cal, hc);
+}
+
 void run(const RunOptions& o) {
+  if (o.profile == "mcu") {
+    run_mcu_profile(o);
+    return;
+  }
+  if (o.scenario.empty()) throw CLI::RequiredError("--sim or --profile");
   drivers::sim::ScenarioConfig sc =
       scenario_by_name(o.scenario, drivers::sim::Fixture::kPlaneNormal);
   if (o.duration_s > 0) {
@@ -254,7 +294,7 @@ void run(const RunOptions& o) {
   host::hil::with_calibrator(spec, [&](auto cal) {
     using Cal = typename decltype(cal)::element_type;
     hc.start_calibration = host::hil::kCalibrates<Cal>;
-    run_session(o, sim, rc, *cal, hc);
+    run_session(o, o.seed, sim, rc, *cal, hc);
   });
 }
 
@@ -264,48 +304,66 @@ void register_run(CLI::App& app) {
   auto opt = std::make_shared<RunOptions>();
   CLI::App* sub = app.add_subcommand(
       "run", "Host-in-the-loop run: simulated devices -> drivers -> sensor loop -> record CSV");
-  sub->add_option("--sim", opt->scenario, "Simulated scenario")
-      ->required()
-      ->check(CLI::IsMember(scenario_names()));
-  sub->add_option("--duration", opt->duration_s, "Simulated seconds (default: the scenario's)")
-      ->check(CLI::Range(1e-3, 1e7));
-  sub->add_option("--seed", opt->seed, "Random seed")->capture_default_str();
-  sub->add_option("--faults", opt->faults, kFaultsHelp);
-  sub->add_option("--link", opt->link, "Magnetometer link")
-      ->check(CLI::IsMember({"spi", "serial"}))
-      ->capture_default_str();
-  sub->add_option("--calibrator", opt->calibrator,
-                  "In-loop calibrator: li (batch one-step), ekf (online scalar EKF + misalignment "
-                  "fit), vector-ekf (online vector calibration filter), none")
-      ->check(CLI::IsMember({"none", "li", "ekf", "vector-ekf"}))
-      ->capture_default_str();
-  sub->add_flag("--ekf-no-align", opt->ekf_no_align,
-                "ekf: skip the misalignment fit (Rm = I; h_n not aligned to the INS)");
-  sub->add_option("--calibration", opt->calibration,
-                  "Calibration file (cal.json) installed as the active calibration (cal_id 1)")
-      ->check(CLI::ExistingFile);
-  sub->add_option("--ins-latency-comp-us", opt->ins_latency_comp_us,
-                  "Known INS transport latency subtracted from CAN receive times (configuration; "
-                  "the ins-latency-us fault is not known to the loop)")
-      ->check(CLI::Range(0, 1'000'000))
-      ->capture_default_str();
-  sub->add_option("--fusion-horizon-us", opt->fusion_horizon_us,
-                  "Longest wait of a sample for the INS samples that bracket it, then its attitude "
-                  "is extrapolated and flagged (0: process on arrival)")
-      ->check(CLI::Range(0, 1'000'000))
-      ->capture_default_str();
-  sub->add_option("--time-offset-s", opt->time_offset_s,
-                  "Magnetometer stamp minus INS time of its attitude (s); overrides the "
-                  "--calibration file's time_offset_s")
-      ->check(CLI::Range(-10.0, 10.0));
-  sub->add_option("--noise-nT", opt->noise_nT,
-                  "Known magnetometer noise SD per axis for the in-loop calibrator and its "
-                  "validation (default: estimated from the data)")
-      ->check(CLI::Range(1e-6, 1e5));
-  sub->add_option("--ins-noise-deg", opt->ins_noise_deg,
-                  "Known INS attitude noise SD per angle for the in-loop calibrator and the "
-                  "vector check (default: estimated from the data)")
-      ->check(CLI::Range(1e-6, 10.0));
+  CLI::Option* sim_opt = sub->add_option("--sim", opt->scenario, "Simulated scenario")
+                             ->check(CLI::IsMember(scenario_names()));
+  CLI::Option* profile =
+      sub->add_option("--profile", opt->profile,
+                      "Instead of --sim and the run's options: mcu = the MCU image's scenario, "
+                      "seed, devices, EKF calibrator and pipeline (bit-identical to the M7 image)")
+          ->check(CLI::IsMember({"mcu"}))
+          ->excludes(sim_opt);
+  // What --profile fixes cannot also be given (each is rejected by name).
+  std::vector<CLI::Option*> configures;
+  configures.push_back(
+      sub->add_option("--duration", opt->duration_s, "Simulated seconds (default: the scenario's)")
+          ->check(CLI::Range(1e-3, 1e7)));
+  configures.push_back(sub->add_option("--seed", opt->seed, "Random seed")->capture_default_str());
+  configures.push_back(sub->add_option("--faults", opt->faults, kFaultsHelp));
+  configures.push_back(sub->add_option("--link", opt->link, "Magnetometer link")
+                           ->check(CLI::IsMember({"spi", "serial"}))
+                           ->capture_default_str());
+  configures.push_back(
+      sub->add_option(
+             "--calibrator", opt->calibrator,
+             "In-loop calibrator: li (batch one-step), ekf (online scalar EKF + misalignment "
+             "fit), vector-ekf (online vector calibration filter), none")
+          ->check(CLI::IsMember({"none", "li", "ekf", "vector-ekf"}))
+          ->capture_default_str());
+  configures.push_back(
+      sub->add_flag("--ekf-no-align", opt->ekf_no_align,
+                    "ekf: skip the misalignment fit (Rm = I; h_n not aligned to the INS)"));
+  configures.push_back(
+      sub->add_option("--calibration", opt->calibration,
+                      "Calibration file (cal.json) installed as the active calibration (cal_id 1)")
+          ->check(CLI::ExistingFile));
+  configures.push_back(
+      sub->add_option("--ins-latency-comp-us", opt->ins_latency_comp_us,
+                      "Known INS transport latency subtracted from CAN receive times "
+                      "(configuration; the ins-latency-us fault is not known to the loop)")
+          ->check(CLI::Range(0, 1'000'000))
+          ->capture_default_str());
+  configures.push_back(
+      sub->add_option("--fusion-horizon-us", opt->fusion_horizon_us,
+                      "Longest wait of a sample for the INS samples that bracket it, then its "
+                      "attitude is extrapolated and flagged (0: process on arrival)")
+          ->check(CLI::Range(0, 1'000'000))
+          ->capture_default_str());
+  configures.push_back(sub->add_option("--time-offset-s", opt->time_offset_s,
+                                       "Magnetometer stamp minus INS time of its attitude (s); "
+                                       "overrides the --calibration file's time_offset_s")
+                           ->check(CLI::Range(-10.0, 10.0)));
+  configures.push_back(
+      sub->add_option("--noise-nT", opt->noise_nT,
+                      "Known magnetometer noise SD per axis for the in-loop calibrator and its "
+                      "validation (default: estimated from the data)")
+          ->check(CLI::Range(1e-6, 1e5)));
+  configures.push_back(
+      sub->add_option("--ins-noise-deg", opt->ins_noise_deg,
+                      "Known INS attitude noise SD per angle for the in-loop calibrator and the "
+                      "vector check (default: estimated from the data)")
+          ->check(CLI::Range(1e-6, 10.0)));
+  for (CLI::Option* c : configures)
+    profile->excludes(c);
   sub->add_option("--out", opt->out, "Record CSV (written atomically)")->required();
   sub->callback([opt] { run(*opt); });
 }

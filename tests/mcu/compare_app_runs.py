@@ -6,17 +6,22 @@ Modes:
           value, counter and record line);
   float   M4F image (Scalar = float) vs magvec_app_host_double: intensity RMSE within 1.1x, every
           G and b element within FRACTION (3) of its 1-sigma (the EKF's float32 tolerance).
-Both: the on-target checks (power-cut sweep, reload from flash) passed, sample/attitude counts
-identical.
+  cli     no image: magvec_app_host_double vs `magvec run --profile mcu` (--cli): every record
+          line of the twin bit-identical to the CLI's record of the same number (the CSV holds
+          shortest round-trip decimals, so exact doubles).
+double and float: the on-target checks (power-cut sweep, reload from flash) passed,
+sample/attitude counts identical. double with --cli: the CLI's records are compared too.
 Exit 77 (ctest SKIP_RETURN_CODE) when the image or qemu is missing: build the m4f/m7 presets.
 """
 import argparse
+import csv
 import math
 import os
 import shutil
 import struct
 import subprocess
 import sys
+import tempfile
 
 SKIP = 77
 
@@ -65,21 +70,74 @@ class Checker:
             self.failures += 1
 
 
+def same(x, y):
+    return (math.isnan(x) and math.isnan(y)) or (x == y and math.copysign(1, x) ==
+                                                  math.copysign(1, y))
+
+
+def compare_cli(c, twin, cli, timeout):
+    """The twin's record lines (every kRecordEvery-th record) against `magvec run --profile mcu`,
+    whose CSV has every record: record k of the CLI is row k."""
+    with tempfile.TemporaryDirectory() as d:
+        out = os.path.join(d, "records.csv")
+        rc, stdout, err = run([cli, "run", "--profile", "mcu", "--out", out], timeout)
+        c.check(rc == 0, f"magvec run --profile mcu exit code {rc} {err.strip()}")
+        if rc != 0:
+            return
+        print("cli:    " + stdout.strip().splitlines()[0])
+        with open(out, newline="") as f:
+            rows = list(csv.DictReader(line for line in f if not line.startswith("#")))
+    every = 100  # firmware/app/include/magvec/app/image_profile.hpp kRecordEvery
+    differ = []
+    for i, (t_us, flags, cal_id, v) in enumerate(twin["rec"]):
+        k = (i + 1) * every
+        if k > len(rows):
+            differ.append(f"record {k}: the CLI wrote only {len(rows)}")
+            break
+        r = rows[k - 1]
+        cli_v = [float(r[n]) for n in ("hx_nT", "hy_nT", "hz_nT", "hsx_nT", "hsy_nT", "hsz_nT",
+                                       "F_nT", "sigma_F_nT", "hE_nT", "hN_nT", "hU_nT")]
+        ok = (round(float(r["t_s"]) * 1e6) == t_us and int(float(r["flags"])) == flags and
+              int(float(r["cal_id"])) == cal_id and all(same(x, y) for x, y in zip(v, cli_v)))
+        if not ok:
+            differ.append(f"record {k}: twin {t_us} {flags:#x} {cal_id} {v}; cli {dict(r)}")
+    for line in differ[:3]:
+        print("  " + line)
+    c.check(len(twin["rec"]) > 0 and not differ and len(rows) >= len(twin["rec"]) * every,
+            f"magvec run --profile mcu: {len(twin['rec'])} of its {len(rows)} records compared "
+            f"with the twin's record lines, {len(differ)} differ")
+    cal_ids = {int(float(r["cal_id"])) for r in rows}
+    c.check(1 in cal_ids, f"the CLI's run applied its calibration (cal_id {sorted(cal_ids)})")
+
+
 def rel_close(a, b, rel, floor):
     return abs(a - b) <= rel * max(abs(a), abs(b), floor)
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--machine", required=True)
-    ap.add_argument("--elf", required=True)
+    ap.add_argument("--machine", help="double and float modes: the qemu machine")
+    ap.add_argument("--elf", help="double and float modes: the image")
     ap.add_argument("--host", required=True, help="host twin with the same Scalar as the image")
     ap.add_argument("--host-double", help="float mode: the double host twin")
-    ap.add_argument("--mode", choices=["double", "float"], required=True)
+    ap.add_argument("--mode", choices=["double", "float", "cli"], required=True)
+    ap.add_argument("--cli", help="double and cli modes: the magvec CLI")
     ap.add_argument("--fraction", type=float, default=3.0,
                     help="float mode: allowed |float - double| in units of the 1-sigma")
     ap.add_argument("--timeout", type=float, default=120)
     a = ap.parse_args()
+
+    if a.mode == "cli":
+        c = Checker()
+        rc, host_out, err = run([a.host], a.timeout)
+        c.check(rc == 0, f"host twin {os.path.basename(a.host)} exit code {rc}")
+        h = parse(host_out)
+        print("host:   " + h["lines"].get("summary", "(no summary)"))
+        compare_cli(c, h, a.cli, a.timeout)
+        print(f"{c.failures} failure(s)")
+        return 1 if c.failures else 0
+    if not a.machine or not a.elf:
+        ap.error("--machine and --elf are needed in the double and float modes")
 
     if not os.path.exists(a.elf):
         skip(f"{a.elf} not built (cmake --preset m4f/m7 && cmake --build --preset m4f/m7, "
@@ -140,6 +198,8 @@ def main():
         c.check(len(t["rec"]) > 0 and len(t["rec"]) == len(h["rec"]) and diff == 0,
                 f"records bit-identical: {len(t['rec'])} target, {len(h['rec'])} host, "
                 f"{diff} differ")
+        if a.cli:
+            compare_cli(c, t, a.cli, a.timeout)
         print(f"{c.failures} failure(s)")
         return 1 if c.failures else 0
     rc, d_out, err = run([a.host_double], a.timeout)

@@ -41,6 +41,7 @@
 #include <limits>
 
 #include "magvec/app/board.hpp"
+#include "magvec/app/image_profile.hpp"
 #include "magvec/app/line_writer.hpp"
 #include "magvec/app/record_line_sink.hpp"
 #include "magvec/core/ekf_calibrator.hpp"
@@ -53,6 +54,7 @@
 #include "magvec/drivers/sim/simulator.hpp"
 #include "magvec/drivers/sim_flash.hpp"
 #include "magvec/pipeline/device_pipeline.hpp"
+#include "magvec/pipeline/solve_schedule.hpp"
 
 #ifndef MAGVEC_APP_SCALAR
 #error "MAGVEC_APP_SCALAR (float or double) must be defined by the build"
@@ -67,40 +69,10 @@ namespace {
 using Scalar = MAGVEC_APP_SCALAR;
 namespace sim = drivers::sim;
 
-constexpr std::uint64_t kSeed = 20170817;
-constexpr double kRateHz = 50.0;
-constexpr std::uint32_t kRecordEvery = 100;  // survey samples between two record lines
-constexpr std::uint32_t kInsLatencyCompUs = 500;
-constexpr std::uint32_t kFusionHorizonUs = 50'000;
-
-sim::ScenarioConfig make_scenario() noexcept {
-  sim::ScenarioConfig c = sim::scenario_survey();
-  c.name = "survey50";
-  c.rate_hz = kRateHz;
-  // The calibration manoeuvre and one survey line.
-  c.num_samples = static_cast<std::uint32_t>((c.survey.manoeuvre_s + c.survey.line_s) * kRateHz);
-  return c;
-}
-
-// Fluxgate electronics 100 uT/V: +/-120 uT at ADC gain 1 (LSB 0.014 nT, well under the noise).
-sim::SimRigConfig make_rig_config() noexcept {
-  sim::SimRigConfig r;
-  r.adc.transfer.nT_per_volt = {1e5, 1e5, 1e5};
-  return r;
-}
-
-// Alignment store of the calibrator (misalignment fit): 128 decimated samples (2 deg apart) keep
-// core + loop within the 16 KiB RAM budget in float (256 would need 13 KiB for the store alone).
-constexpr std::size_t kAlignCapacity = 128;
 #if MAGVEC_APP_VECTOR
-// The vector filter's replay store (E-VF-1): 128 samples (6.5 KiB in float) instead of the
-// host's 512; its start-up set as on the host.
-constexpr int kVectorReplay = 128;
-// The calibrator's hold ring: 2 x (20 ms rate half span + an offset up to 140 ms) at 50 Hz.
-constexpr int kVectorHold = 16;
-using Calibrator = core::VectorCalibrator<Scalar, 64, kVectorReplay, kVectorHold>;
+using Calibrator = VectorImageCalibrator<Scalar>;
 #else
-using Calibrator = core::EkfCalibrator<Scalar, kAlignCapacity>;
+using Calibrator = EkfImageCalibrator<Scalar>;
 #endif
 using Loop = core::SensorLoop<Scalar, Calibrator>;
 // 64 INS epochs (0.64 s at 100 Hz); 8 queued magnetometer samples (160 ms at 50 Hz) cover the
@@ -108,59 +80,22 @@ using Loop = core::SensorLoop<Scalar, Calibrator>;
 using Pipeline = pipeline::DevicePipeline<Scalar, Calibrator, 64, 8>;
 
 #if MAGVEC_APP_VECTOR
-// Defaults, as a user gets them: the noise is estimated from the data, the scenario's per-sample
-// scalar reference ties the field; 50 Hz samples.
 core::VectorCalibratorConfig<Scalar> make_cal_config(const sim::ScenarioConfig& s) noexcept {
-  core::VectorCalibratorConfig<Scalar> c;
-  c.filter.sample_interval_s = static_cast<Scalar>(1.0 / s.rate_hz);
-  // Information folds of 16 samples (E-VF-B): the per-sample Bierman updates (three of the
-  // 19-state filter's, ~2 300 instructions each on the M4F, plus their U^T products) become an
-  // accumulation, and a fold every 16 samples costs about what two samples did.
-  c.filter.fold_samples = 16;
-  // The output envelope's readiness check (~150 000 instructions) every 128 samples, 2.6 s at
-  // 50 Hz, instead of every 64: 1 200 instructions per sample less.
-  c.refresh_every = 128;
-  return c;
+  return vector_calibrator_config<Scalar>(s);
 }
 const char* cal_code_name(std::uint8_t code) noexcept {
   return core::vec_cal_code_name(code);
 }
 #else
+core::EkfCalibratorConfig<Scalar> make_cal_config(const sim::ScenarioConfig& s) noexcept {
+  return ekf_calibrator_config<Scalar>(s);
+}
 const char* cal_code_name(std::uint8_t code) noexcept {
   return core::ekf_cal_code_name(code);
 }
-core::EkfCalibratorConfig<Scalar> make_cal_config(const sim::ScenarioConfig& s) noexcept {
-  core::EkfCalibratorConfig<Scalar> c;
-  c.ekf.noise_sigma_nT = static_cast<Scalar>(s.mag_noise_nT);
-  // The 60 s manoeuvre at 50 Hz is 3000 samples: initial fit (~100), filter updates, the solve,
-  // then 200 held-out validation samples must all fit in it.
-  c.min_updates = 1500;
-  return c;
-}
 #endif
-
 core::PipelineConfig<Scalar> make_pipeline_config(const sim::ScenarioConfig& s) noexcept {
-  core::PipelineConfig<Scalar> c;
-#if MAGVEC_APP_VECTOR
-  // Not told either: the loop judges the candidate by the noise its calibrator estimated.
-  c.loop.noise_nT = std::numeric_limits<Scalar>::quiet_NaN();
-  c.loop.attitude_noise_deg = std::numeric_limits<Scalar>::quiet_NaN();
-#else
-  c.loop.noise_nT = static_cast<Scalar>(s.mag_noise_nT > 0 ? s.mag_noise_nT : 1.0);
-  c.loop.attitude_noise_deg = static_cast<Scalar>(s.ins_noise_deg > 0 ? s.ins_noise_deg : 0.01);
-#endif
-  c.ins_latency_us = kInsLatencyCompUs;
-  c.horizon_us = kFusionHorizonUs;
-  c.mag_period_us = pipeline::period_us_from_hz(s.rate_hz);
-  c.ins_period_us = pipeline::period_us_from_hz(make_rig_config().ins.rate_hz);
-  // The main loop runs the calibrator's solve in idle time (see the top).
-  c.loop.external_solve = true;
-  // The spike screen runs with the pipeline's defaults, as in magvecd and `magvec run`. It costs
-  // ~150 instructions per sample, and its wait for each sample's successor moves the attitude
-  // lookup off its exact-time fast path: 5 334 per calibrating sample against the budget of 5 000
-  // when first measured, 4 836 since the lookup searches from the newest end, the interpolation
-  // fraction avoids soft double and the EKF's finiteness checks and W copies got cheaper.
-  return c;
+  return pipeline_config<Scalar>(s, MAGVEC_APP_VECTOR != 0);
 }
 
 // Sample clock period under qemu -icount shift=0 (one instruction per virtual nanosecond): 500 us
@@ -176,9 +111,6 @@ constexpr std::uint32_t kDefaultTickUs = 3360;
 #else
 constexpr std::uint32_t kDefaultTickUs = 500;
 #endif
-// The solve's result is installed after this many records past the one that raised the ticket
-// (the solve must be done by then; if it is not, the main loop finishes it before going on).
-constexpr std::uint32_t kSolveInstallRecords = 8;
 // Acquisition queue: 64 events (one tick is a magnetometer sample and ~2 INS frames) hold ~20
 // sample periods of main-loop stall (the EKF's start-up fit is the longest).
 constexpr std::size_t kAcqQueueEvents = 64;
@@ -462,10 +394,8 @@ bool acquisition_idle() noexcept {
 // ---- the calibrator's solve, off the per-sample path ---------------------------------------
 
 struct SolveJob {
-  bool pending{false};  // a ticket raised, result not installed yet
+  pipeline::SolveSchedule schedule{kSolveInstallRecords};  // ticket raised, result not installed
   bool solved{false};
-  std::uint32_t ticket{0};
-  std::uint32_t ticket_record{0};  // the record (sample number) that raised the ticket
   core::CalibratorSolve result{};
   core::SensorModel<Scalar> model{};
   // Figures: the solve's duration (board clock) and the samples that arrived meanwhile.
@@ -663,22 +593,19 @@ int app_main(const char* args) noexcept {
     if (!prev_init && g_cal.filter().initialised() && ms.init_fit == 0) ms.init_fit = st.processed;
     prev_init = g_cal.filter().initialised();
     // A solve ticket: the main loop solves in idle time; the result goes in at a fixed record.
-    if (g_loop.state() == core::CalState::kSolving && g_loop.solve_ticket() != job.ticket) {
-      job.pending = true;
+    if (job.schedule.raised(g_loop, st.processed)) {
       job.solved = false;
-      job.ticket = g_loop.solve_ticket();
-      job.ticket_record = st.processed;
       if (ms.ready == 0) ms.ready = st.processed;
       g_acq.solve_window.store(true, std::memory_order_relaxed);
     }
-    if (job.pending && st.processed - job.ticket_record >= kSolveInstallRecords) {
+    if (job.schedule.due(st.processed)) {
       if (!job.solved) {
         ++job.forced;
         run_solve(job);
       }
-      job.pending = false;
+      job.schedule.installed();
       g_acq.solve_window.store(false, std::memory_order_relaxed);
-      if (g_loop.install_solve(job.ticket, job.result, job.model) && ms.solve == 0)
+      if (g_loop.install_solve(job.schedule.ticket(), job.result, job.model) && ms.solve == 0)
         ms.solve = st.processed;
     }
     const core::CalState state = g_loop.state();
@@ -734,7 +661,7 @@ int app_main(const char* args) noexcept {
         break;
       case AcqKind::kMagnetometer: {
         const MagEntry& m = e.mag;
-        const bool solving = job.pending;
+        const bool solving = job.schedule.pending();
         if (opt.core) {
           if (opt.records) {
             truth_ring.put(
@@ -747,7 +674,8 @@ int app_main(const char* args) noexcept {
         g_acq.consumed.fetch_add(1, std::memory_order_relaxed);
         const std::uint64_t latency = board_time_us() - m.acquired_us;
         max_latency_us = std::max(max_latency_us, latency);
-        if (solving || job.pending) max_latency_solve_us = std::max(max_latency_solve_us, latency);
+        if (solving || job.schedule.pending())
+          max_latency_solve_us = std::max(max_latency_solve_us, latency);
         break;
       }
     }
@@ -761,7 +689,7 @@ int app_main(const char* args) noexcept {
       g_acq.queue.pop_front();
     }
     // Idle time: the pending solve (preempted by the ticks; samples wait in the queue).
-    if (job.pending && !job.solved) {
+    if (job.schedule.pending() && !job.solved) {
       run_solve(job);
       continue;
     }
@@ -778,7 +706,7 @@ int app_main(const char* args) noexcept {
   // End of the stream (or of n=<k>): every sample read gets its record.
   if (opt.core) g_pipeline.flush(on_record);
   // A ticket the flush raised is solved too (idle time after the stream; not installed).
-  if (job.pending && !job.solved) run_solve(job);
+  if (job.schedule.pending() && !job.solved) run_solve(job);
   if (stored) {
     const int prc = report_power_cut_sweep(w, blob_old, blob_new);
     if (prc != 0) rc = rc != 0 ? rc : prc;
@@ -826,7 +754,7 @@ int app_main(const char* args) noexcept {
   w.str(" max_depth=").u(g_acq.max_depth).str(" max_depth_solving=").u(g_acq.max_depth_solve);
   w.str(" max_latency_us=").u(max_latency_us).str(" max_latency_solving_us=");
   w.u(max_latency_solve_us).end();
-  w.str("MV solve ticket=").u(job.ticket).str(" solve_us=").u(job.solve_us);
+  w.str("MV solve ticket=").u(job.schedule.ticket()).str(" solve_us=").u(job.solve_us);
   w.str(" ticks_during=").u(job.ticks_during).str(" forced=").u(job.forced).end();
   if (g_acq.lost_events != 0 || g_acq.consumed.load(std::memory_order_relaxed) != g_acq.samples)
     rc = rc != 0 ? rc : 7;

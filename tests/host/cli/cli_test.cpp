@@ -410,6 +410,27 @@ TEST_F(Cli, RunRejectsUnknownFaultsAndCalibrators) {
   EXPECT_FALSE(fs::exists(file("a.csv")));
 }
 
+// --profile mcu fixes the run: everything that would configure it is refused by name, and a run
+// needs --sim or --profile. (Its records against the MCU image: tests/mcu.)
+TEST_F(Cli, RunProfileRefusesWhatItFixes) {
+  for (const char* extra : {"--seed 3", "--sim survey", "--calibrator li", "--duration 10",
+                            "--faults crc=0.01", "--noise-nT 0.3", "--fusion-horizon-us 0"}) {
+    const Result r = run("run --profile mcu " + std::string(extra) + " --out " + file("p.csv"));
+    EXPECT_NE(r.status, 0) << extra;
+    const std::string opt = std::string(extra).substr(0, std::string(extra).find(' '));
+    EXPECT_NE(r.output.find(opt), std::string::npos) << r.output;
+  }
+  const Result none = run("run --out " + file("p.csv"));
+  EXPECT_NE(none.status, 0);
+  EXPECT_NE(none.output.find("--sim or --profile is required"), std::string::npos) << none.output;
+  EXPECT_NE(run("run --profile m7 --out " + file("p.csv")).status, 0);
+  EXPECT_FALSE(fs::exists(file("p.csv")));
+  const Result ok = run("run --profile mcu --out " + file("p.csv"));
+  ASSERT_EQ(ok.status, 0) << ok.output;
+  EXPECT_NE(ok.output.find("survey50, seed 20170817"), std::string::npos) << ok.output;
+  EXPECT_NE(ok.output.find("calibration: state applied"), std::string::npos) << ok.output;
+}
+
 TEST_F(Cli, RunWithTheLiCalibratorCalibratesInTheLoop) {
   const Result r =
       run("run --sim survey --duration 90 --seed 3 --calibrator li --faults crc=0.01 "

@@ -18,9 +18,14 @@ are placed from them, and per-sample figures are differences of D between two k 
   solving:     the largest D(k) - D(k - 1) for ready < k <= installed: a sample's own work while
                the solve is pending (the installing sample starts the validation)
   initial fit: D(init) - D(init - 1) - the collecting per-sample work: the EKF's start-up fit
+--profile N: where the calibrating samples' instructions go, per function (the top N): qemu's
+`hotblocks` contrib plugin (built like `insn`, its report limit lifted) counts each translation
+block's executions in the same four runs; blocks are attributed to the ELF's symbols
+(arm-none-eabi-nm) and the baseline's share is subtracted as above.
 Exit 77 when the plugin cannot be built (no network, no glib headers) or the image is missing.
 """
 import argparse
+import bisect
 import os
 import re
 import shutil
@@ -40,9 +45,18 @@ def skip(msg):
     sys.exit(SKIP)
 
 
-def build_plugin(cache):
+# The plugins: library name -> (source in the qemu tree, edits to it).
+PLUGINS = {
+    "insn": ("tests/plugin/insn.c", []),
+    # Every block in the report, not the top 20.
+    "hotblocks": ("contrib/plugins/hotblocks.c",
+                  [("static guint64 limit = 20;", "static guint64 limit = G_MAXUINT64;")]),
+}
+
+
+def build_plugin(cache, name="insn"):
     cache = os.path.abspath(cache)  # the private APT config needs absolute paths
-    so = os.path.join(cache, "libinsn.so")
+    so = os.path.join(cache, f"lib{name}.so")
     if os.path.exists(so):
         return so
     os.makedirs(cache, exist_ok=True)
@@ -71,12 +85,20 @@ def build_plugin(cache):
         orig = [f for f in os.listdir(src) if f.endswith(".orig.tar.xz")][0]
         top = subprocess.run(["tar", "tf", os.path.join(src, orig)], capture_output=True,
                              text=True).stdout.split("/", 1)[0]
-        subprocess.run(["tar", "xf", orig, f"{top}/tests/plugin/insn.c",
-                        f"{top}/include/qemu/qemu-plugin.h"], cwd=src, check=True)
+        path, edits = PLUGINS[name]
+        subprocess.run(["tar", "xf", orig, f"{top}/{path}", f"{top}/include/qemu/qemu-plugin.h"],
+                       cwd=src, check=True)
+        c_file = os.path.join(src, top, path)
+        text = open(c_file).read()
+        for old, new in edits:
+            if old not in text:
+                raise OSError(f"{path}: '{old}' not found")
+            text = text.replace(old, new)
+        open(c_file, "w").write(text)
         glib = subprocess.run(["pkg-config", "--cflags", "glib-2.0"], capture_output=True,
                               text=True, check=True).stdout.split()
         subprocess.run(["gcc", "-O2", "-shared", "-fPIC", "-I", f"{src}/{top}/include/qemu", *glib,
-                        f"{src}/{top}/tests/plugin/insn.c", "-o", so], check=True)
+                        c_file, "-o", so], check=True)
     except (subprocess.SubprocessError, IndexError, OSError) as e:
         skip(f"could not build the qemu insn plugin: {e}")
     return so
@@ -98,6 +120,55 @@ def count(qemu, machine, elf, plugin, args, timeout):
         print(p.stdout, p.stderr, text)
         raise SystemExit(f"qemu run {args} failed (rc {p.returncode})")
     return int(m.group(1))
+
+
+def block_profile(qemu, machine, elf, plugin, args, timeout):
+    """Instructions executed per translation block start address (hotblocks: icount x ecount)."""
+    with tempfile.NamedTemporaryFile(suffix=".log") as log:
+        sh = ",".join(["enable=on", "target=native", "arg=magvec_app"] +
+                      [f"arg={x}" for x in args])
+        subprocess.run([qemu, "-M", machine, "-nographic", "-monitor", "none", "-serial", "none",
+                        *ICOUNT, "-semihosting-config", sh, "-kernel", elf, "-plugin", plugin,
+                        "-d", "plugin", "-D", log.name], capture_output=True, timeout=timeout)
+        lines = open(log.name).read().splitlines()
+    out = {}
+    for line in lines:
+        parts = [x.strip() for x in line.split(",")]
+        if len(parts) != 4 or not parts[0].startswith("0x"):
+            continue
+        pc = int(parts[0], 16)
+        out[pc] = out.get(pc, 0) + int(parts[2]) * int(parts[3])
+    return out
+
+
+def function_profile(qemu, machine, elf, plugin, k0, k1, top, timeout):
+    nm = shutil.which("arm-none-eabi-nm")
+    if nm is None:
+        skip("arm-none-eabi-nm not installed (toolchain/setup)")
+    syms = []
+    for line in subprocess.run([nm, "-S", "-C", elf], capture_output=True, text=True,
+                               check=True).stdout.splitlines():
+        p = line.split(None, 3)
+        if len(p) == 4 and p[2].lower() in ("t", "w"):
+            syms.append((int(p[0], 16) & ~1, int(p[1], 16), p[3]))
+    syms.sort()
+    starts = [x[0] for x in syms]
+
+    def name(pc):
+        i = bisect.bisect_right(starts, pc) - 1
+        return syms[i][2] if i >= 0 and pc < syms[i][0] + max(syms[i][1], 1) else "?"
+
+    per_fn = {}
+    for k, sign in ((k1, 1), (k0, -1)):
+        for mode, msign in (("quiet", 1), ("baseline", -1)):
+            for pc, n in block_profile(qemu, machine, elf, plugin, [mode, f"n={k}"],
+                                       timeout).items():
+                fn = name(pc)
+                per_fn[fn] = per_fn.get(fn, 0) + sign * msign * n
+    total = sum(per_fn.values()) / (k1 - k0)
+    print(f"per calibrating sample, by function (samples {k0}-{k1}; total {total:.0f}):")
+    for fn, n in sorted(per_fn.items(), key=lambda x: -abs(x[1]))[:top]:
+        print(f"{n / (k1 - k0):8.0f}  {fn[:150]}")
 
 
 def milestones(qemu, machine, elf, timeout):
@@ -124,6 +195,8 @@ def main():
     ap.add_argument("--budget-only", action="store_true",
                     help="measure the calibrating per-sample figure only (the ctest)")
     ap.add_argument("--timeout", type=float, default=300)
+    ap.add_argument("--profile", type=int, default=0, metavar="N",
+                    help="only the calibrating samples' instructions by function, the top N")
     a = ap.parse_args()
     if not os.path.exists(a.elf):
         skip(f"{a.elf} not built")
@@ -148,6 +221,10 @@ def main():
         return d[k]
 
     c0, c1 = init + 100, ready - 100
+    if a.profile > 0:
+        function_profile(qemu, a.machine, a.elf, build_plugin(a.cache, "hotblocks"), c0, c1,
+                         a.profile, a.timeout)
+        return 0
     cal = (core(c1) - core(c0)) / (c1 - c0)
     print(f"per sample, calibrating (EKF update + compensation + loop): {cal:.0f} instructions")
     if a.budget_only:

@@ -883,7 +883,9 @@ class VectorCalibrationFilter {
     const Vec3<Scalar> hn = xf.template segment<3>(kHn0);
     const Vec3<Scalar> r = g - hn;
     const Mat3<Scalar> pm = mm * wm;  // P = M W
-    Mat<Scalar, 3, kStates> h = Mat<Scalar, 3, kStates>::Zero();
+    // Every column is written below (W, o, Rm, h_n, dt, temperature: kStates in all).
+    static_assert(kWEntries + 3 + 3 + 3 + 1 + 3 == kStates);
+    Mat<Scalar, 3, kStates> h;
     for (int k = 0; k < kWEntries; ++k)
       h.col(kW0 + k) =
           mm.col(kWRow[static_cast<std::size_t>(k)]) * v(kWCol[static_cast<std::size_t>(k)]);

@@ -236,14 +236,7 @@ void run_mcu_profile(const RunOptions& o) {
   const drivers::sim::ScenarioConfig sc = app::make_scenario();
   const drivers::sim::SimRigConfig rc = app::make_rig_config();
   drivers::sim::Simulator sim(sc, app::kSeed);
-  const core::PipelineConfig<double> pc = app::pipeline_config<double>(sc, false);
-  host::hil::HilConfig hc;
-  hc.loop = pc.loop;
-  hc.buffer = pc.buffer;
-  hc.ins_latency_comp_us = pc.ins_latency_us;
-  hc.horizon_us = pc.horizon_us;
-  hc.time_offset_us = pc.time_offset_us;
-  hc.adopt_calibration_time_offset = pc.adopt_calibration_time_offset;
+  host::hil::HilConfig hc = host::hil::hil_config_from(app::pipeline_config<double>(sc, false));
   hc.solve_install_records = app::kSolveInstallRecords;
   hc.start_calibration = true;
   auto cal =

@@ -87,25 +87,28 @@ def compare_cli(c, twin, cli, timeout):
         print("cli:    " + stdout.strip().splitlines()[0])
         with open(out, newline="") as f:
             rows = list(csv.DictReader(line for line in f if not line.startswith("#")))
-    every = 100  # firmware/app/include/magvec/app/image_profile.hpp kRecordEvery
+    # The twin's record lines are a thinned subset; each is found by its time stamp.
+    by_t = {round(float(r["t_s"]) * 1e6): (k + 1, r) for k, r in enumerate(rows)}
     differ = []
-    for i, (t_us, flags, cal_id, v) in enumerate(twin["rec"]):
-        k = (i + 1) * every
-        if k > len(rows):
-            differ.append(f"record {k}: the CLI wrote only {len(rows)}")
-            break
-        r = rows[k - 1]
+    for t_us, flags, cal_id, v in twin["rec"]:
+        if t_us not in by_t:
+            differ.append(f"t_us {t_us}: no CLI record")
+            continue
+        k, r = by_t[t_us]
         cli_v = [float(r[n]) for n in ("hx_nT", "hy_nT", "hz_nT", "hsx_nT", "hsy_nT", "hsz_nT",
                                        "F_nT", "sigma_F_nT", "hE_nT", "hN_nT", "hU_nT")]
-        ok = (round(float(r["t_s"]) * 1e6) == t_us and int(float(r["flags"])) == flags and
-              int(float(r["cal_id"])) == cal_id and all(same(x, y) for x, y in zip(v, cli_v)))
+        ok = (int(float(r["flags"])) == flags and int(float(r["cal_id"])) == cal_id and
+              all(same(x, y) for x, y in zip(v, cli_v)))
         if not ok:
             differ.append(f"record {k}: twin {t_us} {flags:#x} {cal_id} {v}; cli {dict(r)}")
     for line in differ[:3]:
         print("  " + line)
-    c.check(len(twin["rec"]) > 0 and not differ and len(rows) >= len(twin["rec"]) * every,
-            f"magvec run --profile mcu: {len(twin['rec'])} of its {len(rows)} records compared "
-            f"with the twin's record lines, {len(differ)} differ")
+    # Every record, not only the compared ones: as many as the twin's pipeline emitted.
+    pipe = dict(kv.split("=", 1) for kv in twin["lines"].get("pipeline", "").split() if "=" in kv)
+    c.check(len(twin["rec"]) > 0 and not differ and str(len(rows)) == pipe.get("records"),
+            f"magvec run --profile mcu: {len(twin['rec'])} of its {len(rows)} records (the twin's "
+            f"pipeline: {pipe.get('records')}) compared with the twin's record lines, "
+            f"{len(differ)} differ")
     cal_ids = {int(float(r["cal_id"])) for r in rows}
     c.check(1 in cal_ids, f"the CLI's run applied its calibration (cal_id {sorted(cal_ids)})")
 

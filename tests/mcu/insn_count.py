@@ -104,13 +104,17 @@ def build_plugin(cache, name="insn"):
     return so
 
 
+def image_cmd(qemu, machine, elf, args):
+    """qemu running the image with app arguments `args` on the instruction-time clock."""
+    sh = ",".join(["enable=on", "target=native", "arg=magvec_app"] + [f"arg={x}" for x in args])
+    return [qemu, "-M", machine, "-nographic", "-monitor", "none", "-serial", "none", *ICOUNT,
+            "-semihosting-config", sh, "-kernel", elf]
+
+
 def count(qemu, machine, elf, plugin, args, timeout):
     with tempfile.NamedTemporaryFile(suffix=".log") as log:
-        sh = ",".join(["enable=on", "target=native", "arg=magvec_app"] +
-                      [f"arg={x}" for x in args])
-        p = subprocess.run([qemu, "-M", machine, "-nographic", "-monitor", "none", "-serial",
-                            "none", *ICOUNT, "-semihosting-config", sh, "-kernel", elf,
-                            "-plugin", f"{plugin},inline=on", "-d", "plugin", "-D", log.name],
+        p = subprocess.run(image_cmd(qemu, machine, elf, args) +
+                           ["-plugin", f"{plugin},inline=on", "-d", "plugin", "-D", log.name],
                            capture_output=True, text=True, timeout=timeout)
         text = open(log.name).read()
     m = re.search(r"insns: (\d+)", text)
@@ -125,11 +129,9 @@ def count(qemu, machine, elf, plugin, args, timeout):
 def block_profile(qemu, machine, elf, plugin, args, timeout):
     """Instructions executed per translation block start address (hotblocks: icount x ecount)."""
     with tempfile.NamedTemporaryFile(suffix=".log") as log:
-        sh = ",".join(["enable=on", "target=native", "arg=magvec_app"] +
-                      [f"arg={x}" for x in args])
-        subprocess.run([qemu, "-M", machine, "-nographic", "-monitor", "none", "-serial", "none",
-                        *ICOUNT, "-semihosting-config", sh, "-kernel", elf, "-plugin", plugin,
-                        "-d", "plugin", "-D", log.name], capture_output=True, timeout=timeout)
+        subprocess.run(image_cmd(qemu, machine, elf, args) +
+                       ["-plugin", plugin, "-d", "plugin", "-D", log.name],
+                       capture_output=True, timeout=timeout)
         lines = open(log.name).read().splitlines()
     out = {}
     for line in lines:
@@ -172,10 +174,8 @@ def function_profile(qemu, machine, elf, plugin, k0, k1, top, timeout):
 
 
 def milestones(qemu, machine, elf, timeout):
-    sh = "enable=on,target=native,arg=magvec_app,arg=quiet"
-    p = subprocess.run([qemu, "-M", machine, "-nographic", "-monitor", "none", "-serial", "none",
-                        *ICOUNT, "-semihosting-config", sh, "-kernel", elf],
-                       capture_output=True, text=True, timeout=timeout)
+    p = subprocess.run(image_cmd(qemu, machine, elf, ["quiet"]), capture_output=True, text=True,
+                       timeout=timeout)
     m = re.search(r"MV milestones init_fit=(\d+) solve=(\d+) applied=(\d+) ready=(\d+)",
                   p.stdout)
     n = re.search(r"MV counts samples=(\d+)", p.stdout)

@@ -94,9 +94,6 @@ const char* cal_code_name(std::uint8_t code) noexcept {
   return core::ekf_cal_code_name(code);
 }
 #endif
-core::PipelineConfig<Scalar> make_pipeline_config(const sim::ScenarioConfig& s) noexcept {
-  return pipeline_config<Scalar>(s, MAGVEC_APP_VECTOR != 0);
-}
 
 // Sample clock period under qemu -icount shift=0 (one instruction per virtual nanosecond): 500 us
 // = 500 000 instructions per magnetometer sample, of which the tick handler's simulated world
@@ -211,7 +208,7 @@ sim::SimRig g_rig(g_sim, make_rig_config());
 drivers::Ads131Fluxgate g_adc(g_rig.adc(), g_rig.adc(), make_rig_config().adc.transfer);
 drivers::sbg::CanAttitudeSource g_ins(g_rig.ins());
 Calibrator g_cal(make_cal_config(g_scenario));
-Pipeline g_pipeline(g_cal, make_pipeline_config(g_scenario));
+Pipeline g_pipeline(g_cal, pipeline_config<Scalar>(g_scenario, MAGVEC_APP_VECTOR != 0));
 Loop& g_loop = g_pipeline.loop();
 constexpr std::size_t kSector = 1024;
 std::uint8_t g_flash_storage[4 * kSector];

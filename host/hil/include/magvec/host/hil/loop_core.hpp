@@ -51,6 +51,19 @@ struct HilConfig {
 
 using HilCounters = pipeline::DeviceCounters;
 
+// The HilConfig of a pipeline configuration (the MCU image's, `magvec run --profile mcu`): the
+// inverse of LoopCore's pipeline_config(), whose sample periods come from the rig's rates.
+inline HilConfig hil_config_from(const core::PipelineConfig<double>& p) noexcept {
+  HilConfig h;
+  h.loop = p.loop;
+  h.buffer = p.buffer;
+  h.ins_latency_comp_us = p.ins_latency_us;
+  h.horizon_us = p.horizon_us;
+  h.time_offset_us = p.time_offset_us;
+  h.adopt_calibration_time_offset = p.adopt_calibration_time_offset;
+  return h;
+}
+
 // Seconds -> whole microseconds (the time offset of cal.json and the CLI options).
 inline std::int64_t offset_us_from_s(double s) noexcept {
   return static_cast<std::int64_t>(std::llround(s * 1e6));

@@ -8,6 +8,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
 #include <memory>
 #include <random>
 
@@ -139,6 +140,92 @@ TEST(EkfCalibrator, AddDoesNotAllocate) {
   EXPECT_EQ(scope.count(), 0u);
   EXPECT_TRUE(cal->filter().initialised());
   EXPECT_GT(cal->updates(), 1000u);
+}
+
+// E-Acc-3: the |h| 1-sigma over the survey envelope from the filter's covariance against the
+// Monte Carlo scatter of the error it predicts. Each run's solved model compensates noise-free
+// readings of the true field at the attitudes of its own envelope (the tilts it saw, every
+// heading), scored against the true |h_n|. RMS over the runs of the predicted and of the actual.
+struct EnvelopeScatter {
+  double predicted_nT = 0;
+  double actual_nT = 0;
+  int runs = 0;
+};
+
+EnvelopeScatter envelope_scatter(std::uint32_t relinearise_after, int runs, std::uint32_t updates) {
+  const drivers::sim::ScenarioConfig sc = drivers::sim::scenario_survey();
+  double p2 = 0, a2 = 0;
+  EnvelopeScatter out;
+  for (int run = 0; run < runs; ++run) {
+    EkfCalibratorConfig<double> c = config(true);
+    c.ekf.relinearise_start_after = relinearise_after;
+    auto cal = std::make_unique<Cal>(c);
+    drivers::sim::Simulator sim(sc, 5000 + static_cast<std::uint64_t>(run));
+    drivers::sim::SimSample s{};
+    while (cal->updates() < updates && sim.next(&s))
+      cal->add(s.m_nT, s.f_nT, &s.r_bn_ins);
+    if (cal->updates() < updates) {
+      ADD_FAILURE() << "run " << run << ": only " << cal->updates() << " updates";
+      continue;
+    }
+    SensorModel<double> model;
+    const CalibratorSolve r = cal->solve(&model);
+    if (!r.ok) {
+      ADD_FAILURE() << "run " << run << ": " << ekf_cal_code_name(r.code);
+      continue;
+    }
+    const double predicted = cal->envelope_sigma_f_nT(model, cal->alignment().h_n);
+    if (relinearise_after > 0) {
+      EXPECT_NEAR(r.calibration_sigma_f_nT, predicted, 1e-6 * predicted);
+    } else {
+      EXPECT_TRUE(std::isnan(r.calibration_sigma_f_nT)) << "an optimistic figure was given";
+    }
+    double e2 = 0;
+    int n = 0;
+    for_each_envelope_attitude(cal->tilt_moments(), [&](const Mat3<double>& r_bn) {
+      const Vec3<double> m = sc.truth.predict_raw(r_bn, sc.h_n_nT);
+      const double e = (model.w * (m - model.o)).norm() - sc.h_n_nT.norm();
+      e2 += e * e;
+      ++n;
+    });
+    if (n != kEnvelopeAttitudes) {
+      ADD_FAILURE() << "run " << run << ": " << n << " envelope attitudes";
+      continue;
+    }
+    p2 += predicted * predicted;
+    a2 += e2 / n;
+    ++out.runs;
+  }
+  out.predicted_nT = std::sqrt(p2 / out.runs);
+  out.actual_nT = std::sqrt(a2 / out.runs);
+  return out;
+}
+
+// The default readiness (2 000 updates, all 60 runs ready there) and later: from 3 000 updates on
+// within 25 % of the scatter. At readiness the error has a heavy tail (over 240 runs the worst two
+// at 4.6 and 7.8 sigma: the filter's first updates were linearised about a start still off),
+// 1.3x; there the test asks what the change is for: a smaller scatter and a closer figure than
+// the filter with its start as a Gaussian, which is 2x optimistic.
+TEST(EkfCalibrator, IntensitySigmaOverTheEnvelopeMatchesTheScatter) {
+  const EnvelopeScatter gaussian = envelope_scatter(0, 60, 2000);
+  const EnvelopeScatter at_ready = envelope_scatter(250, 60, 2000);
+  ASSERT_EQ(gaussian.runs, 60);
+  ASSERT_EQ(at_ready.runs, 60);
+  std::printf(
+      "2000 updates: predicted %.4f nT, scatter %.4f nT (ratio %.2f); start as a Gaussian: "
+      "%.4f, %.4f (%.2f)\n",
+      at_ready.predicted_nT, at_ready.actual_nT, at_ready.actual_nT / at_ready.predicted_nT,
+      gaussian.predicted_nT, gaussian.actual_nT, gaussian.actual_nT / gaussian.predicted_nT);
+  EXPECT_GT(gaussian.actual_nT / gaussian.predicted_nT, 1.5) << "the old filter was consistent?";
+  EXPECT_LT(at_ready.actual_nT, gaussian.actual_nT);
+  EXPECT_LT(at_ready.actual_nT / at_ready.predicted_nT, gaussian.actual_nT / gaussian.predicted_nT);
+  for (const std::uint32_t updates : {3000u, 4000u, 8000u}) {
+    const EnvelopeScatter e = envelope_scatter(250, 60, updates);
+    ASSERT_EQ(e.runs, 60);
+    std::printf("%u updates: predicted %.4f nT, scatter %.4f nT (ratio %.2f)\n", updates,
+                e.predicted_nT, e.actual_nT, e.actual_nT / e.predicted_nT);
+    EXPECT_NEAR(e.actual_nT / e.predicted_nT, 1.0, 0.25) << updates << " updates";
+  }
 }
 
 }  // namespace

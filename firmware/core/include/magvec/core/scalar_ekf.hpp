@@ -16,6 +16,9 @@
 // start-up set of samples (an algebraic quadric least-squares fit, outlier screening, then
 // Gauss-Newton on the exact model over those samples); P0 is the inverse information of those
 // samples, so no data is wasted and the filter continues as a recursive Gauss-Newton from there.
+// The start-up set is kept, and its term in the filter's cost is relinearised at the running
+// estimate after relinearise_start_after updates and each time that count doubles (E-Acc-3): as a
+// Gaussian fixed at the fit it left the covariance 1.5-2.2x optimistic and the estimate worse.
 // Start-up by information: the start-up set is a bounded, well-spread subset of the samples seen so
 // far, kept by a D-optimal exchange on the quadric features of the field directions (a sample
 // enters if it adds information, and replaces the member whose exchange raises the determinant of
@@ -115,6 +118,7 @@ struct EkfCounters {
   std::uint32_t init_attempts = 0;       // initial fits tried
   std::uint32_t init_failures = 0;       // initial fits that failed (collection goes on)
   std::uint32_t init_exchanges = 0;      // start-up set members replaced by better-spread samples
+  std::uint32_t start_relinearisations = 0;  // the start-up set's term relinearised (E-Acc-3)
 };
 
 template <typename Scalar>
@@ -147,6 +151,10 @@ struct EkfConfig {
   int init_samples = 64;      // size of the start-up set (<= the filter's init capacity)
   int init_min_samples = 20;  // fewest samples try_start() fits (>= 16)
   int init_gauss_newton_iterations = 4;
+  // The start-up set's information is relinearised at the running estimate after this many
+  // updates from the fitted start, then each time the count has doubled (docs/equations.md
+  // E-Acc-3: the start as a Gaussian made the covariance 1.6-3x optimistic). 0: never.
+  std::uint32_t relinearise_start_after = 250;
   // After a failed fit, try again once the set's information (det^(1/9) of its direction
   // features) has grown by this factor.
   Scalar init_retry_gain{Scalar(1.25)};
@@ -247,6 +255,9 @@ class ScalarEkfBase {
   bool try_start() noexcept;
 
   bool initialised() const noexcept { return initialised_; }
+  // The start-up set's term has been relinearised since the filter started (E-Acc-3): from then on
+  // its covariance is a usable 1-sigma of G and o.
+  bool start_relinearised() const noexcept { return start_relinearised_; }
   const EkfCounters& counters() const noexcept { return counters_; }
   EkfResetReason last_reset_reason() const noexcept { return last_reset_; }
   const Config& config() const noexcept { return cfg_; }
@@ -553,7 +564,54 @@ class ScalarEkfBase {
     }
     ++counters_.updates;
     window_nis_sum_ += last_nis_;
+    if (start_term_ && relin_next_ > 0 && counters_.updates - start_updates_ >= relin_next_) {
+      relin_next_ = relin_next_ > 0x7fffffffU ? 0U : 2U * relin_next_;
+      relinearise_start();
+    }
     return end_of_window_check(EkfStatus::kAccepted);
+  }
+
+  // E-Acc-3: the start-up set enters the filter as a Gaussian, the quadratic of its likelihood at
+  // the fit, which is too narrow for an ellipsoid seen over a cap of directions; it stays
+  // influential for thousands of updates in the directions a survey adds little to. Here that
+  // quadratic is replaced by the set's quadratic at the current estimate x_T (its samples are
+  // kept), in information form: N' = P^-1 - N_old + N_T, and one Newton step from x_T on the
+  // changed cost, whose gradient at x_T (where the old cost had its minimum) is
+  // N_old (x_T - x_old) - g_old + g_T. Skipped (state untouched) when N' is not positive definite.
+  void relinearise_start() noexcept {
+    // P^-1 = U^-T D^-1 U^-1; U^-1 by back substitution column by column (U unit upper triangular).
+    StateMat ui = StateMat::Identity();
+    for (int j = 0; j < kN; ++j)
+      for (int i = j - 1; i >= 0; --i) {
+        Scalar v{0};
+        for (int k = i + 1; k <= j; ++k)
+          v += u_(i, k) * ui(k, j);
+        ui(i, j) = -v;
+      }
+    StateMat info;
+    for (int j = 0; j < kN; ++j)
+      for (int i = j; i < kN; ++i) {
+        Scalar v{0};
+        for (int k = 0; k <= j; ++k)
+          v += ui(k, i) * ui(k, j) / d_(k);
+        info(i, j) = v;
+        info(j, i) = v;
+      }
+    StateMat n_t;
+    StateVec g_t;
+    if (normal_equations(&n_t, &g_t) < 16) return;
+    info += n_t - start_info_;
+    const StateVec rhs = start_info_ * (x_ - start_x_lin_) - start_grad_ + g_t;
+    StateMat p;
+    if (!invert_information(info, &p)) return;
+    const StateVec dx = p * rhs;
+    if (!dx.allFinite() || !ud_factorise(p)) return;  // ud_factorise: u_, d_ untouched on failure
+    start_x_lin_ = x_;
+    start_info_ = n_t;
+    start_grad_ = g_t;
+    x_ += dx;
+    start_relinearised_ = true;
+    ++counters_.start_relinearisations;
   }
 
   EkfStatus end_of_window_check(EkfStatus status) noexcept {
@@ -957,6 +1015,13 @@ class ScalarEkfBase {
     }
     if (fitted && report_.undetermined == 0 && c_inv().determinant() > 0 && ud_factorise(p0)) {
       counters_.init_outliers += static_cast<std::uint32_t>(dropped);
+      // The filter's prior is this fit as a Gaussian: its quadratic, kept to be replaced later.
+      start_x_lin_ = x_;
+      start_info_ = info;
+      start_grad_.setZero();
+      start_term_ = true;
+      start_updates_ = counters_.updates;
+      relin_next_ = cfg_.relinearise_start_after;
       return true;
     }
     // Failed: say why, in the order the acceptance policy checks causes.
@@ -991,6 +1056,15 @@ class ScalarEkfBase {
   StateVec x_ = StateVec::Zero();
   StateMat u_ = StateMat::Identity();
   StateVec d_ = StateVec::Ones();
+  // The start-up set's term in the filter's cost (E-Acc-3): linearised at start_x_lin_, its
+  // information and its gradient there; relinearised at updates start_updates_ + relin_next_.
+  bool start_term_ = false;
+  bool start_relinearised_ = false;  // since the current start
+  StateVec start_x_lin_ = StateVec::Zero();
+  StateMat start_info_ = StateMat::Zero();
+  StateVec start_grad_ = StateVec::Zero();
+  std::uint32_t start_updates_ = 0;
+  std::uint32_t relin_next_ = 0;
   // Start-up set (normalised samples and reference field) and its direction information. The
   // arrays (capacity_ entries each; buf_m_ 3 per sample) are the derived class's storage.
   Scalar* buf_m_ = nullptr;
@@ -1052,6 +1126,8 @@ void ScalarEkfBase<Scalar>::configure(const Config& config) noexcept {
 template <typename Scalar>
 void ScalarEkfBase<Scalar>::restart() noexcept {
   initialised_ = false;
+  start_term_ = false;
+  start_relinearised_ = false;
   n_buf_ = 0;
   target_ = cfg_.init_samples;
   feat_info_.setZero();

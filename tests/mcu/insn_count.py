@@ -10,7 +10,11 @@ the firmware's own work (the baseline also runs the sample clock and the acquisi
 first quiet run reports the loop's milestones (the samples that completed the EKF's initial fit,
 raised the solve ticket, had the solve's result installed, applied the calibration); the windows
 are placed from them, and per-sample figures are differences of D between two k in one phase:
-  calibrating: EKF update + compensation + loop (the filter running, before the solve)
+  calibrating: EKF update + compensation + loop (the filter running, before the solve), without
+               the samples whose update relinearised the EKF's start-up set (reported apart)
+  relinearisation: D(k) - D(k - 1) - the calibrating per-sample work, for each such sample k (the
+               image reports them): the start-up set's term relinearised (docs/equations.md
+               E-Acc-3), a few times per calibration, inside the sample as the initial fit is
   calibrated:  compensation + loop (after the calibration is applied)
   solve:       D(ready) - D(ready - 1) - the calibrating per-sample work: the calibrator's batch
                solve (misalignment fit of the EKF's model + Li canonicalisation), which the image
@@ -179,11 +183,13 @@ def milestones(qemu, machine, elf, timeout):
     m = re.search(r"MV milestones init_fit=(\d+) solve=(\d+) applied=(\d+) ready=(\d+)",
                   p.stdout)
     n = re.search(r"MV counts samples=(\d+)", p.stdout)
-    if p.returncode != 0 or m is None or n is None:
+    r = re.search(r"MV relinearised at=([\d,]*)", p.stdout)
+    if p.returncode != 0 or m is None or n is None or r is None:
         print(p.stdout, p.stderr)
         raise SystemExit(f"quiet run failed (rc {p.returncode})")
     return {"init_fit": int(m.group(1)), "solve": int(m.group(2)), "applied": int(m.group(3)),
-            "ready": int(m.group(4)), "samples": int(n.group(1))}
+            "ready": int(m.group(4)), "samples": int(n.group(1)),
+            "relinearised": [int(k) for k in r.group(1).split(",") if k]}
 
 
 def main():
@@ -225,8 +231,15 @@ def main():
         function_profile(qemu, a.machine, a.elf, build_plugin(a.cache, "hotblocks"), c0, c1,
                          a.profile, a.timeout)
         return 0
-    cal = (core(c1) - core(c0)) / (c1 - c0)
+    # The samples that relinearised the EKF's start-up set are events, measured apart.
+    events = [k for k in ms["relinearised"] if c0 < k <= c1]
+    event_insns = {k: core(k) - core(k - 1) for k in events}
+    cal = (core(c1) - core(c0) - sum(event_insns.values())) / (c1 - c0 - len(events))
     print(f"per sample, calibrating (EKF update + compensation + loop): {cal:.0f} instructions")
+    for k in events:
+        print(f"relinearisation of the EKF's start-up set at sample {k}:    "
+              f"{event_insns[k] - cal:.0f} instructions (with the window's average: "
+              f"{(core(c1) - core(c0)) / (c1 - c0):.0f} per sample)")
     if a.budget_only:
         ok = a.budget <= 0 or cal <= a.budget
         print(f"{'ok' if ok else 'FAIL'}: {cal:.0f} instructions per calibrating sample, "

@@ -35,6 +35,7 @@
 // calibrator (core::VectorCalibrator, calibrator mode `vector-ekf`, docs/equations.md E-VF) in
 // place of the scalar EKF; the solve is then a read of the filter, still run in idle time.
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <cstdint>
 #include <cstring>
@@ -448,7 +449,22 @@ struct Milestones {
   std::uint32_t solve{0};     // the sample after which the solve's result was installed
   std::uint32_t applied{0};   // the sample on which the loop applied the calibration
   std::uint32_t ready{0};     // the sample that raised the solve ticket (solved in idle time)
+  // The samples whose EKF update relinearised the start-up set (docs/equations.md E-Acc-3): rare
+  // events inside a sample, which the insn count measures apart from the per-sample path.
+  std::array<std::uint32_t, 8> relinearised{};
+  std::size_t n_relinearised{0};
 };
+
+// The scalar EKF's relinearisations of its start-up set so far; the vector filter has none.
+template <typename Cal>
+std::uint32_t start_relinearisations(const Cal& cal) noexcept {
+#if MAGVEC_APP_VECTOR
+  (void)cal;
+  return 0;
+#else
+  return cal.filter().counters().start_relinearisations;
+#endif
+}
 
 void report_vec(LineWriter& w, const char* key, const Scalar* v, int n) noexcept {
   w.str("MV ").str(key);
@@ -581,6 +597,7 @@ int app_main(const char* args) noexcept {
   bool stored = false;
   std::uint8_t blob_new[kBlobBytes] = {};
   bool prev_init = g_cal.filter().initialised();
+  std::uint32_t prev_relin = start_relinearisations(g_cal);
   core::CalState prev_state = g_loop.state();
   // Every record, in sample order, when the pipeline processes its sample (INS epochs bracket it
   // or the fusion horizon expired). `processed` numbers the samples as n=<k> counts them.
@@ -589,6 +606,11 @@ int app_main(const char* args) noexcept {
     // Milestones and the end of the calibration.
     if (!prev_init && g_cal.filter().initialised() && ms.init_fit == 0) ms.init_fit = st.processed;
     prev_init = g_cal.filter().initialised();
+    if (const std::uint32_t r = start_relinearisations(g_cal); r != prev_relin) {
+      prev_relin = r;
+      if (ms.n_relinearised < ms.relinearised.size())
+        ms.relinearised[ms.n_relinearised++] = st.processed;
+    }
     // A solve ticket: the main loop solves in idle time; the result goes in at a fixed record.
     if (job.schedule.raised(g_loop, st.processed)) {
       job.solved = false;
@@ -739,6 +761,10 @@ int app_main(const char* args) noexcept {
   w.str(" no_attitude=").u(lh.no_attitude).str(" align_samples=").u(kAlignSamples).end();
   w.str("MV milestones init_fit=").u(ms.init_fit).str(" solve=").u(ms.solve);
   w.str(" applied=").u(ms.applied).str(" ready=").u(ms.ready).end();
+  w.str("MV relinearised at=");
+  for (std::size_t i = 0; i < ms.n_relinearised; ++i)
+    (i > 0 ? w.str(",") : w).u(ms.relinearised[i]);
+  w.end();
   w.str("MV counts samples=").u(g_acq.samples).str(" read_errors=").u(g_acq.read_errors);
   w.str(" not_fresh=").u(g_acq.not_fresh).str(" device_errors=").u(g_acq.device_errors);
   w.str(" att=").u(g_acq.att_samples).str(" records=").u(sink.emitted());

@@ -68,10 +68,6 @@ core::EkfCalibratorConfig<Scalar> ekf_calibrator_config(
   // The 60 s manoeuvre at 50 Hz is 3000 samples: initial fit (~100), filter updates, the solve,
   // then 200 held-out validation samples must all fit in it.
   c.min_updates = 1500;
-  // The start kept as a Gaussian (no relinearisation, docs/equations.md E-Acc-3): with it,
-  // `magvec run --profile mcu` and the host twin differed in the last bits of 40 of 60 records (the
-  // twin and the M7 image stayed identical), and the records of the three must be identical.
-  c.ekf.relinearise_start_after = 0;
   return c;
 }
 

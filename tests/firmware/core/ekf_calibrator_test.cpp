@@ -228,5 +228,20 @@ TEST(EkfCalibrator, IntensitySigmaOverTheEnvelopeMatchesTheScatter) {
   }
 }
 
+// With process noise the filter forgets part of its start, so the start's term cannot be swapped
+// whole: no relinearisation, and no 1-sigma from a covariance that stayed optimistic.
+TEST(EkfCalibrator, WithProcessNoiseTheStartIsNotRelinearisedAndNoFigureIsGiven) {
+  EkfCalibratorConfig<double> c = config(true);
+  c.ekf.q.tail<3>().setConstant(1e-6);  // offset drift, nT^2 per update
+  auto cal = std::make_unique<Cal>(c);
+  ASSERT_GT(feed(cal.get(), 14, 0.0), 0u);
+  EXPECT_EQ(cal->filter().counters().start_relinearisations, 0u);
+  EXPECT_FALSE(cal->filter().start_relinearised());
+  SensorModel<double> model;
+  const CalibratorSolve r = cal->solve(&model);
+  ASSERT_TRUE(r.ok) << ekf_cal_code_name(r.code);
+  EXPECT_TRUE(std::isnan(r.calibration_sigma_f_nT));
+}
+
 }  // namespace
 }  // namespace magvec::core

@@ -18,7 +18,7 @@
 // samples, so no data is wasted and the filter continues as a recursive Gauss-Newton from there.
 // The start-up set is kept, and its term in the filter's cost is relinearised at the running
 // estimate after relinearise_start_after updates and each time that count doubles (E-Acc-3): as a
-// Gaussian fixed at the fit it left the covariance 1.5-2.2x optimistic and the estimate worse.
+// Gaussian fixed at the fit it left the covariance 1.4-2.5x optimistic and the estimate worse.
 // Start-up by information: the start-up set is a bounded, well-spread subset of the samples seen so
 // far, kept by a D-optimal exchange on the quadric features of the field directions (a sample
 // enters if it adds information, and replaces the member whose exchange raises the determinant of
@@ -153,7 +153,8 @@ struct EkfConfig {
   int init_gauss_newton_iterations = 4;
   // The start-up set's information is relinearised at the running estimate after this many
   // updates from the fitted start, then each time the count has doubled (docs/equations.md
-  // E-Acc-3: the start as a Gaussian made the covariance 1.6-3x optimistic). 0: never.
+  // E-Acc-3: the start as a Gaussian made the covariance 1.4-2.5x optimistic). 0: never, and
+  // never with process noise (q not zero).
   std::uint32_t relinearise_start_after = 250;
   // After a failed fit, try again once the set's information (det^(1/9) of its direction
   // features) has grown by this factor.
@@ -1021,7 +1022,9 @@ class ScalarEkfBase {
       start_grad_.setZero();
       start_term_ = true;
       start_updates_ = counters_.updates;
-      relin_next_ = cfg_.relinearise_start_after;
+      // With process noise the filter forgets part of that term, and replacing the whole of it
+      // would remove information it no longer holds: no relinearisation (and no 1-sigma from it).
+      relin_next_ = cfg_.q.isZero() ? cfg_.relinearise_start_after : 0U;
       return true;
     }
     // Failed: say why, in the order the acceptance policy checks causes.

@@ -149,12 +149,14 @@ TEST(EkfCalibrator, AddDoesNotAllocate) {
 struct EnvelopeScatter {
   double predicted_nT = 0;
   double actual_nT = 0;
+  double predicted_enu_nT = 0;  // per axis
+  double actual_enu_nT = 0;
   int runs = 0;
 };
 
 EnvelopeScatter envelope_scatter(std::uint32_t relinearise_after, int runs, std::uint32_t updates) {
   const drivers::sim::ScenarioConfig sc = drivers::sim::scenario_survey();
-  double p2 = 0, a2 = 0;
+  double p2 = 0, a2 = 0, pv2 = 0, av2 = 0;
   EnvelopeScatter out;
   for (int run = 0; run < runs; ++run) {
     EkfCalibratorConfig<double> c = config(true);
@@ -180,12 +182,15 @@ EnvelopeScatter envelope_scatter(std::uint32_t relinearise_after, int runs, std:
     } else {
       EXPECT_TRUE(std::isnan(r.calibration_sigma_f_nT)) << "an optimistic figure was given";
     }
-    double e2 = 0;
+    double e2 = 0, v2 = 0;
     int n = 0;
     for_each_envelope_attitude(cal->tilt_moments(), [&](const Mat3<double>& r_bn) {
       const Vec3<double> m = sc.truth.predict_raw(r_bn, sc.h_n_nT);
       const double e = (model.w * (m - model.o)).norm() - sc.h_n_nT.norm();
       e2 += e * e;
+      const Vec3<double> g =
+          r_bn.transpose() * model.rm_matrix().transpose() * model.w * (m - model.o);
+      v2 += (g - sc.h_n_nT).squaredNorm() / 3;
       ++n;
     });
     if (n != kEnvelopeAttitudes) {
@@ -194,19 +199,25 @@ EnvelopeScatter envelope_scatter(std::uint32_t relinearise_after, int runs, std:
     }
     p2 += predicted * predicted;
     a2 += e2 / n;
+    const double enu = static_cast<double>(r.calibration_sigma_enu_nT);
+    pv2 += enu * enu;
+    av2 += v2 / n;
     ++out.runs;
   }
   out.predicted_nT = std::sqrt(p2 / out.runs);
   out.actual_nT = std::sqrt(a2 / out.runs);
+  out.predicted_enu_nT = std::sqrt(pv2 / out.runs);
+  out.actual_enu_nT = std::sqrt(av2 / out.runs);
   return out;
 }
 
-// The default readiness (2 000 updates, all 60 runs ready there) and later: from 3 000 updates on
-// within 25 % of the scatter. At readiness the error has a heavy tail (over 240 runs the worst two
-// at 4.6 and 7.8 sigma: the filter's first updates were linearised about a start still off),
-// 1.3x; there the test asks what the change is for: a smaller scatter and a closer figure than
-// the filter with its start as a Gaussian, which is 2x optimistic.
-TEST(EkfCalibrator, IntensitySigmaOverTheEnvelopeMatchesTheScatter) {
+// The default readiness (2 000 updates, all 60 runs ready there) and later. |h|: from 3 000 updates
+// on within 25 % of the scatter; at readiness the error has a heavy tail (over 240 runs the worst
+// two at 4.6 and 7.8 sigma: the filter's first updates were linearised about a start still off),
+// 1.3-1.5x, and there the test asks what the change is for: a smaller scatter and a closer figure
+// than the filter with its start as a Gaussian, which is 2x optimistic. E/N/U (the filter's error
+// through the alignment fit, and the fit's own): within 25 % at every stage.
+TEST(EkfCalibrator, OutputSigmasOverTheEnvelopeMatchTheScatter) {
   const EnvelopeScatter gaussian = envelope_scatter(0, 60, 2000);
   const EnvelopeScatter at_ready = envelope_scatter(250, 60, 2000);
   ASSERT_EQ(gaussian.runs, 60);
@@ -216,15 +227,23 @@ TEST(EkfCalibrator, IntensitySigmaOverTheEnvelopeMatchesTheScatter) {
       "%.4f, %.4f (%.2f)\n",
       at_ready.predicted_nT, at_ready.actual_nT, at_ready.actual_nT / at_ready.predicted_nT,
       gaussian.predicted_nT, gaussian.actual_nT, gaussian.actual_nT / gaussian.predicted_nT);
+  std::printf("2000 updates: E/N/U predicted %.4f nT, scatter %.4f nT (ratio %.2f)\n",
+              at_ready.predicted_enu_nT, at_ready.actual_enu_nT,
+              at_ready.actual_enu_nT / at_ready.predicted_enu_nT);
   EXPECT_GT(gaussian.actual_nT / gaussian.predicted_nT, 1.5) << "the old filter was consistent?";
   EXPECT_LT(at_ready.actual_nT, gaussian.actual_nT);
   EXPECT_LT(at_ready.actual_nT / at_ready.predicted_nT, gaussian.actual_nT / gaussian.predicted_nT);
+  EXPECT_NEAR(at_ready.actual_enu_nT / at_ready.predicted_enu_nT, 1.0, 0.25);
   for (const std::uint32_t updates : {3000u, 4000u, 8000u}) {
     const EnvelopeScatter e = envelope_scatter(250, 60, updates);
     ASSERT_EQ(e.runs, 60);
-    std::printf("%u updates: predicted %.4f nT, scatter %.4f nT (ratio %.2f)\n", updates,
-                e.predicted_nT, e.actual_nT, e.actual_nT / e.predicted_nT);
+    std::printf(
+        "%u updates: predicted %.4f nT, scatter %.4f nT (ratio %.2f); E/N/U %.4f, %.4f "
+        "(%.2f)\n",
+        updates, e.predicted_nT, e.actual_nT, e.actual_nT / e.predicted_nT, e.predicted_enu_nT,
+        e.actual_enu_nT, e.actual_enu_nT / e.predicted_enu_nT);
     EXPECT_NEAR(e.actual_nT / e.predicted_nT, 1.0, 0.25) << updates << " updates";
+    EXPECT_NEAR(e.actual_enu_nT / e.predicted_enu_nT, 1.0, 0.25) << updates << " updates, E/N/U";
   }
 }
 
@@ -241,6 +260,7 @@ TEST(EkfCalibrator, WithProcessNoiseTheStartIsNotRelinearisedAndNoFigureIsGiven)
   const CalibratorSolve r = cal->solve(&model);
   ASSERT_TRUE(r.ok) << ekf_cal_code_name(r.code);
   EXPECT_TRUE(std::isnan(r.calibration_sigma_f_nT));
+  EXPECT_TRUE(std::isnan(r.calibration_sigma_enu_nT));
 }
 
 }  // namespace

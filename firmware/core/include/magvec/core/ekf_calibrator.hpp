@@ -171,6 +171,106 @@ class EkfCalibrator {
     if (!ok || n == 0) return std::numeric_limits<Scalar>::quiet_NaN();
     return std::sqrt(sum / static_cast<Scalar>(n));
   }
+  // Per-axis RMS over the survey envelope of the E/N/U outputs' 1-sigma (E-Acc-3): the filter's
+  // covariance of x = (C^-1, b) through g = R_bn^T Rm^T W (m - o), with the alignment fit's
+  // response to the filter's error (its refitted rotation absorbs part of it, to first order:
+  // -N_tt^-1 N_tx of its normal equations over the store) and the fit's own noise (the residual
+  // variance times N_tt^-1). w, o: the filter's; rm: the fitted misalignment (the Li form keeps the
+  // map Rm^T W); h_n the fitted field [nT]. NaN without tilts, a start or enough attitudes.
+  // Cold: once per solve, and kept out of the per-sample path's inlining (on the M4F image its
+  // inlined body cost the per-sample update ~100 instructions of lost inlining elsewhere).
+  [[gnu::cold]] Scalar envelope_sigma_enu_nT(const Mat3<Scalar>& w, const Vec3<Scalar>& o,
+                                             const Mat3<Scalar>& rm,
+                                             const Vec3<Scalar>& h_n) const noexcept {
+    using Mat6 = Mat<Scalar, 6, 6>;
+    using Jx = Mat<Scalar, 3, kEkfStateDim>;
+    const Scalar nan = std::numeric_limits<Scalar>::quiet_NaN();
+    if (!ekf_.initialised()) return nan;
+    const Mat3<Scalar> rmt = rm.transpose();
+    // du/dx for u = W (m - o): W row-major (ekf_w_index), then o.
+    const auto du_dx = [&](const Vec3<Scalar>& m) noexcept {
+      Jx j = Jx::Zero();
+      const Vec3<Scalar> v = m - o;
+      for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c)
+          j(r, ekf_w_index(r, c)) = v(c);
+      j.template rightCols<3>() = -w;
+      return j;
+    };
+    // The alignment fit's normal equations in (rotation phi, h_n) and across to x.
+    Mat6 n_tt = Mat6::Zero();
+    Mat<Scalar, 6, kEkfStateDim> n_tx = Mat<Scalar, 6, kEkfStateDim>::Zero();
+    const Scalar hn = h_n.norm();
+    if (!(hn > Scalar(0))) return nan;
+    const Vec3<Scalar> d = h_n / hn;
+    Scalar ss_par{0}, ss_perp{0};  // residuals along the field and across it
+    int n = 0;
+    const auto rows = [&](const StoredSample<Scalar>& st, Mat<Scalar, 3, 6>* b) noexcept {
+      const Mat3<Scalar> rt = st.r_bn().transpose();
+      const Vec3<Scalar> hb = rmt * (w * (st.raw() - o));
+      b->template leftCols<3>() = rt * skew(hb);
+      b->template rightCols<3>() = -Mat3<Scalar>::Identity();
+      return Vec3<Scalar>(rt * hb - h_n);
+    };
+    for (std::size_t i = 0; i < store_.size(); ++i) {
+      const StoredSample<Scalar>& st = store_[i];
+      if (!st.has_attitude() || st.outlier()) continue;
+      Mat<Scalar, 3, 6> b;
+      const Vec3<Scalar> e = rows(st, &b);
+      const Jx c = st.r_bn().transpose() * rmt * du_dx(st.raw());
+      n_tt.noalias() += b.transpose() * b;
+      n_tx.noalias() += b.transpose() * c;
+      const Scalar ep = e.dot(d);
+      ss_par += ep * ep;
+      ss_perp += e.squaredNorm() - ep * ep;
+      ++n;
+    }
+    if (n < 3) return nan;
+    const Eigen::LDLT<Mat6> ldlt(n_tt);
+    if (ldlt.info() != Eigen::Success || !ldlt.isPositive()) return nan;
+    Mat<Scalar, 3, kEkfStateDim> s_phi;  // d(phi)/dx: the rotation's response
+    for (int c = 0; c < kEkfStateDim; ++c) {
+      const Vec<Scalar, 6> col = ldlt.solve(Vec<Scalar, 6>(n_tx.col(c)));
+      s_phi.col(c) = -col.template head<3>();
+    }
+    // The fit's own noise, N^-1 (sum B^T S B) N^-1: the residuals' covariance S is not isotropic
+    // (the attitude noise moves the field only across itself), so along and across the field
+    // separately (degrees of freedom 3 n - 6 shared in proportion).
+    const Scalar dof = static_cast<Scalar>(3 * n) / static_cast<Scalar>(3 * n - 6);
+    const Scalar v_par = dof * ss_par / static_cast<Scalar>(n);
+    const Scalar v_perp = dof * ss_perp / static_cast<Scalar>(2 * n);
+    const Mat3<Scalar> s_res =
+        v_perp * Mat3<Scalar>::Identity() + (v_par - v_perp) * (d * d.transpose());
+    Mat6 meat = Mat6::Zero();
+    for (std::size_t i = 0; i < store_.size(); ++i) {
+      const StoredSample<Scalar>& st = store_[i];
+      if (!st.has_attitude() || st.outlier()) continue;
+      Mat<Scalar, 3, 6> b;
+      (void)rows(st, &b);
+      meat.noalias() += b.transpose() * s_res * b;
+    }
+    Mat6 n_inv;
+    for (int c = 0; c < 6; ++c) {
+      Vec<Scalar, 6> e = Vec<Scalar, 6>::Zero();
+      e(c) = Scalar(1);
+      n_inv.col(c) = ldlt.solve(e);
+    }
+    const Mat3<Scalar> cov_phi = (n_inv * meat * n_inv).template topLeftCorner<3, 3>();
+    const Mat<Scalar, kEkfStateDim, kEkfStateDim> p = ekf_.covariance();
+    const Mat3<Scalar> a = w.inverse();
+    Scalar sum{0};
+    int k = 0;
+    const bool ok = for_each_envelope_attitude(tilts_, [&](const Mat3<Scalar>& r_bn) {
+      const Vec3<Scalar> m = a * (rm * (r_bn * h_n)) + o;
+      const Mat3<Scalar> rt = r_bn.transpose();
+      const Mat3<Scalar> j_phi = rt * skew(Vec3<Scalar>(rmt * (w * (m - o))));
+      const Jx j = rt * rmt * du_dx(m) + j_phi * s_phi;
+      sum += (j * p * j.transpose()).trace() + (j_phi * cov_phi * j_phi.transpose()).trace();
+      ++k;
+    });
+    if (!ok || k == 0) return nan;
+    return std::sqrt(std::max(sum, Scalar(0)) / static_cast<Scalar>(3 * k));
+  }
   // Predicted 1-sigma of the calibrated intensity at the last used sample (inf before the fit).
   Scalar sigma_f_nT() const noexcept {
     if (!ekf_.initialised() || !have_m_) return std::numeric_limits<Scalar>::infinity();
@@ -233,6 +333,7 @@ CalibratorSolve EkfCalibrator<Scalar, AlignCapacity, InitCapacity>::solve(
   aligned_ = false;
   if (!ekf_.initialised()) return fail(EkfCalCode::kNotInitialised);
   SensorModel<Scalar> model = ekf_.model();
+  Scalar sigma_enu = std::numeric_limits<Scalar>::quiet_NaN();
   if (cfg_.align) {
     align_ = joint_rm_hn(store_, model.w, model.o, cfg_.misalignment);
     switch (align_.status) {
@@ -249,6 +350,8 @@ CalibratorSolve EkfCalibrator<Scalar, AlignCapacity, InitCapacity>::solve(
     }
     model.rm = Quat<Scalar>(li_rm(align_.rm_rad));
     model.rm.normalize();
+    if (ekf_.start_relinearised())
+      sigma_enu = envelope_sigma_enu_nT(model.w, model.o, model.rm_matrix(), align_.h_n);
     SensorModel<Scalar> li;
     if (canonicalize_li(model, &li) != ConversionStatus::kOk)
       return fail(EkfCalCode::kNotLiRepresentable);
@@ -263,11 +366,11 @@ CalibratorSolve EkfCalibrator<Scalar, AlignCapacity, InitCapacity>::solve(
   // magnetometer noise over F, so the vector check's floor is conservative, never too tight.
   if (aligned_) {
     r.attitude_noise_deg = static_cast<float>(rad_to_deg(align_.residual_rms));
-    // |h| depends on G and o only, which the filter's covariance describes once its start-up
-    // term is relinearised (E-Acc-3); the E/N/U outputs also carry the alignment's error, for
-    // which no joint covariance exists: not given.
-    if (ekf_.start_relinearised())
+    // From the filter's covariance once its start-up term is relinearised (E-Acc-3).
+    if (ekf_.start_relinearised()) {
       r.calibration_sigma_f_nT = static_cast<float>(envelope_sigma_f_nT(model, align_.h_n));
+      r.calibration_sigma_enu_nT = static_cast<float>(sigma_enu);
+    }
   }
   return r;
 }

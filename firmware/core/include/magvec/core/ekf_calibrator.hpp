@@ -20,11 +20,11 @@
 // ready(): the filter is initialised, has made >= min_updates accepted updates since begin(), the
 // predicted 1-sigma of the calibrated intensity at the last sample is <= max_sigma_f_nT, and (with
 // align) the alignment store holds >= min_align_samples samples.
-// The calibration's own |h| 1-sigma over the survey envelope (CalibratorSolve::
-// calibration_sigma_f_nT, docs/equations.md E-Acc-3) comes from the filter's covariance once its
-// start-up term has been relinearised (scalar_ekf.hpp relinearise_start): over 60 survey runs the
-// scatter is 0.95-1.11x that figure from 3 000 updates on, 1.5x at the default readiness (2 000,
-// a heavy tail). No E/N/U figure: the alignment step's error has no joint covariance with it.
+// The calibration's own 1-sigmas over the survey envelope (CalibratorSolve::calibration_sigma_*,
+// docs/equations.md E-Acc-3) come from the filter's covariance once its start-up term has been
+// relinearised (scalar_ekf.hpp relinearise_start); E/N/U also through the alignment fit's
+// response and its own noise. Over 60 survey runs the |h| scatter is 0.95-1.11x that figure from
+// 3 000 updates on, 1.5x at the default readiness (2 000, a heavy tail); E/N/U 1.00-1.14x.
 // Heap-free, noexcept, Scalar-templated (float and double).
 #pragma once
 

@@ -174,11 +174,12 @@ class EkfCalibrator {
   // Per-axis RMS over the survey envelope of the E/N/U outputs' 1-sigma (E-Acc-3): the filter's
   // covariance of x = (C^-1, b) through g = R_bn^T Rm^T W (m - o), with the alignment fit's
   // response to the filter's error (its refitted rotation absorbs part of it, to first order:
-  // -N_tt^-1 N_tx of its normal equations over the store) and the fit's own noise (the residual
-  // variance times N_tt^-1). w, o: the filter's; rm: the fitted misalignment (the Li form keeps the
-  // map Rm^T W); h_n the fitted field [nT]. NaN without tilts, a start or enough attitudes.
-  // Cold: once per solve, and kept out of the per-sample path's inlining (on the M4F image its
-  // inlined body cost the per-sample update ~100 instructions of lost inlining elsewhere).
+  // -N_tt^-1 N_tx of its normal equations over the store) and the fit's own noise (the sandwich
+  // N_tt^-1 (sum B^T S B) N_tt^-1, S the residuals' covariance along and across the field). w, o:
+  // the filter's; rm: the fitted misalignment (the Li form keeps the map Rm^T W); h_n the fitted
+  // field [nT]. NaN without tilts, a start or enough attitudes.
+  // Cold: runs once per solve (on the M4F image, inlined, it had pushed per-sample helpers out of
+  // line; see MAGVEC_APP_CORE_INLINE in firmware/app/CMakeLists.txt).
   [[gnu::cold]] Scalar envelope_sigma_enu_nT(const Mat3<Scalar>& w, const Vec3<Scalar>& o,
                                              const Mat3<Scalar>& rm,
                                              const Vec3<Scalar>& h_n) const noexcept {

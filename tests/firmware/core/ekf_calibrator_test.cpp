@@ -176,9 +176,12 @@ EnvelopeScatter envelope_scatter(std::uint32_t relinearise_after, int runs, std:
       ADD_FAILURE() << "run " << run << ": " << ekf_cal_code_name(r.code);
       continue;
     }
-    const double predicted = cal->envelope_sigma_f_nT(model, cal->alignment().h_n);
+    // The figures the solve gives (relinearised); of the covariance as it stands otherwise.
+    const Cal::OutputSigmas sig = cal->output_sigmas(model, cal->alignment().h_n);
+    const double predicted = sig.f_nT;
     if (relinearise_after > 0) {
       EXPECT_NEAR(r.calibration_sigma_f_nT, predicted, 1e-6 * predicted);
+      EXPECT_NEAR(r.calibration_sigma_enu_nT, sig.enu_nT, 1e-6 * sig.enu_nT);
     } else {
       EXPECT_TRUE(std::isnan(r.calibration_sigma_f_nT)) << "an optimistic figure was given";
     }

@@ -155,39 +155,32 @@ class EkfCalibrator {
   const SampleStore<Scalar, AlignCapacity>& alignment_store() const noexcept { return store_; }
   // The tilts of the samples the filter used (the survey envelope's, E-Acc-3).
   const TiltMoments<Scalar>& tilt_moments() const noexcept { return tilts_; }
-  // RMS over the survey envelope of the calibrated intensity's 1-sigma from the filter's
-  // covariance (E-Acc-3), at the readings `model` predicts for the field h_n [nT]; NaN without
-  // tilts or a start.
-  Scalar envelope_sigma_f_nT(const SensorModel<Scalar>& model,
-                             const Vec3<Scalar>& h_n) const noexcept {
-    if (!ekf_.initialised()) return std::numeric_limits<Scalar>::quiet_NaN();
-    Scalar sum{0};
-    int n = 0;
-    const bool ok = for_each_envelope_attitude(tilts_, [&](const Mat3<Scalar>& r_bn) {
-      const Scalar s = ekf_.intensity_sigma_nT(model.predict_raw(r_bn, h_n));
-      sum += s * s;
-      ++n;
-    });
-    if (!ok || n == 0) return std::numeric_limits<Scalar>::quiet_NaN();
-    return std::sqrt(sum / static_cast<Scalar>(n));
-  }
-  // Per-axis RMS over the survey envelope of the E/N/U outputs' 1-sigma (E-Acc-3): the filter's
-  // covariance of x = (C^-1, b) through g = R_bn^T Rm^T W (m - o), with the alignment fit's
-  // response to the filter's error (its refitted rotation absorbs part of it, to first order:
-  // -N_tt^-1 N_tx of its normal equations over the store) and the fit's own noise (the sandwich
-  // N_tt^-1 (sum B^T S B) N_tt^-1, S the residuals' covariance along and across the field). w, o:
-  // the filter's; rm: the fitted misalignment (the Li form keeps the map Rm^T W); h_n the fitted
-  // field [nT]. NaN without tilts, a start or enough attitudes.
-  // Cold: runs once per solve (on the M4F image, inlined, it had pushed per-sample helpers out of
-  // line; see MAGVEC_APP_CORE_INLINE in firmware/app/CMakeLists.txt).
-  [[gnu::cold]] Scalar envelope_sigma_enu_nT(const Mat3<Scalar>& w, const Vec3<Scalar>& o,
-                                             const Mat3<Scalar>& rm,
-                                             const Vec3<Scalar>& h_n) const noexcept {
+  // The calibration's own 1-sigmas over the survey envelope (E-Acc-3, output_envelope.hpp's
+  // EnvelopeGram): per-axis E/N/U and |h|, for `model` (any form with the filter's map Rm^T W and
+  // offset, e.g. the solved one) and the fitted field h_n [nT]. The filter's covariance of
+  // x = (C^-1, b) goes through g = R_bn^T Rm^T W (m - o) with the alignment fit's first-order
+  // response (its refitted rotation absorbs part of the error: the phi rows of -N_tt^-1 N_tx of its
+  // normal equations over the store), and the fit's own noise enters as three more parameters
+  // with the sandwich covariance N_tt^-1 (sum B^T S B) N_tt^-1, S the residuals' covariance along
+  // and across the field. (|h| sees neither rotation term.) NaN without a start, tilts or enough
+  // attitudes. Cold: runs once per solve (on the M4F image, inlined, it had pushed per-sample
+  // helpers out of line; see MAGVEC_APP_CORE_INLINE in firmware/app/CMakeLists.txt).
+  struct OutputSigmas {
+    Scalar f_nT{std::numeric_limits<Scalar>::quiet_NaN()};
+    Scalar enu_nT{std::numeric_limits<Scalar>::quiet_NaN()};
+  };
+  [[gnu::cold]] OutputSigmas output_sigmas(const SensorModel<Scalar>& model,
+                                           const Vec3<Scalar>& h_n) const noexcept {
+    constexpr int kN = kEkfStateDim;
     using Mat6 = Mat<Scalar, 6, 6>;
-    using Jx = Mat<Scalar, 3, kEkfStateDim>;
-    const Scalar nan = std::numeric_limits<Scalar>::quiet_NaN();
-    if (!ekf_.initialised()) return nan;
-    const Mat3<Scalar> rmt = rm.transpose();
+    using Jx = Mat<Scalar, 3, kN>;
+    OutputSigmas out;
+    const Scalar hn = h_n.norm();
+    if (!ekf_.initialised() || !(hn > Scalar(0))) return out;
+    const Mat3<Scalar> w = ekf_.c_inv();
+    const Vec3<Scalar> o = ekf_.offset_nT();
+    // The fitted misalignment in the filter's frame: Rm^T = (Rm^T W of the model) W_filter^-1.
+    const Mat3<Scalar> rmt = model.rm_matrix().transpose() * model.w * w.inverse();
     // du/dx for u = W (m - o): W row-major (ekf_w_index), then o.
     const auto du_dx = [&](const Vec3<Scalar>& m) noexcept {
       Jx j = Jx::Zero();
@@ -198,79 +191,71 @@ class EkfCalibrator {
       j.template rightCols<3>() = -w;
       return j;
     };
-    // The alignment fit's normal equations in (rotation phi, h_n) and across to x.
-    Mat6 n_tt = Mat6::Zero();
-    Mat<Scalar, 6, kEkfStateDim> n_tx = Mat<Scalar, 6, kEkfStateDim>::Zero();
-    const Scalar hn = h_n.norm();
-    if (!(hn > Scalar(0))) return nan;
+    // The alignment fit's normal equations in theta = (phi, h_n) and across to x, and the residuals
+    // along the field d and across it; B_i = [R_i^T [h_b]x, -I].
     const Vec3<Scalar> d = h_n / hn;
-    Scalar ss_par{0}, ss_perp{0};  // residuals along the field and across it
+    Mat6 n_tt = Mat6::Zero();
+    Mat6 n_dd = Mat6::Zero();  // sum (B^T d)(B^T d)^T
+    Mat<Scalar, 6, kN> n_tx = Mat<Scalar, 6, kN>::Zero();
+    Scalar ss_par{0}, ss_perp{0};
     int n = 0;
-    const auto rows = [&](const StoredSample<Scalar>& st, Mat<Scalar, 3, 6>* b) noexcept {
-      const Mat3<Scalar> rt = st.r_bn().transpose();
-      const Vec3<Scalar> hb = rmt * (w * (st.raw() - o));
-      b->template leftCols<3>() = rt * skew(hb);
-      b->template rightCols<3>() = -Mat3<Scalar>::Identity();
-      return Vec3<Scalar>(rt * hb - h_n);
-    };
     for (std::size_t i = 0; i < store_.size(); ++i) {
       const StoredSample<Scalar>& st = store_[i];
       if (!st.has_attitude() || st.outlier()) continue;
+      const Mat3<Scalar> rt = st.r_bn().transpose();
+      const Vec3<Scalar> hb = rmt * (w * (st.raw() - o));
       Mat<Scalar, 3, 6> b;
-      const Vec3<Scalar> e = rows(st, &b);
-      const Jx c = st.r_bn().transpose() * rmt * du_dx(st.raw());
+      b.template leftCols<3>() = rt * skew(hb);
+      b.template rightCols<3>() = -Mat3<Scalar>::Identity();
+      const Vec<Scalar, 6> bd = b.transpose() * d;
       n_tt.noalias() += b.transpose() * b;
-      n_tx.noalias() += b.transpose() * c;
+      n_dd.noalias() += bd * bd.transpose();
+      n_tx.noalias() += b.transpose() * (rt * rmt * du_dx(st.raw()));
+      const Vec3<Scalar> e = rt * hb - h_n;
       const Scalar ep = e.dot(d);
       ss_par += ep * ep;
       ss_perp += e.squaredNorm() - ep * ep;
       ++n;
     }
-    if (n < 3) return nan;
+    if (n < 3) return out;
     const Eigen::LDLT<Mat6> ldlt(n_tt);
-    if (ldlt.info() != Eigen::Success || !ldlt.isPositive()) return nan;
-    Mat<Scalar, 3, kEkfStateDim> s_phi;  // d(phi)/dx: the rotation's response
-    for (int c = 0; c < kEkfStateDim; ++c) {
-      const Vec<Scalar, 6> col = ldlt.solve(Vec<Scalar, 6>(n_tx.col(c)));
-      s_phi.col(c) = -col.template head<3>();
+    if (ldlt.info() != Eigen::Success || !ldlt.isPositive()) return out;
+    Mat<Scalar, 6, 3> ninv_phi;  // the phi columns of N_tt^-1
+    for (int c = 0; c < 3; ++c) {
+      Vec<Scalar, 6> e = Vec<Scalar, 6>::Zero();
+      e(c) = Scalar(1);
+      ninv_phi.col(c) = ldlt.solve(e);
     }
-    // The fit's own noise, N^-1 (sum B^T S B) N^-1: the residuals' covariance S is not isotropic
-    // (the attitude noise moves the field only across itself), so along and across the field
-    // separately (degrees of freedom 3 n - 6 shared in proportion).
+    const Mat<Scalar, 3, kN> s_phi = -(ninv_phi.transpose() * n_tx);  // d(phi)/dx
+    // S = v_perp I + (v_par - v_perp) d d^T (the attitude noise moves the field only across
+    // itself; degrees of freedom 3 n - 6 shared in proportion), so sum B^T S B from the two sums.
     const Scalar dof = static_cast<Scalar>(3 * n) / static_cast<Scalar>(3 * n - 6);
     const Scalar v_par = dof * ss_par / static_cast<Scalar>(n);
     const Scalar v_perp = dof * ss_perp / static_cast<Scalar>(2 * n);
-    const Mat3<Scalar> s_res =
-        v_perp * Mat3<Scalar>::Identity() + (v_par - v_perp) * (d * d.transpose());
-    Mat6 meat = Mat6::Zero();
-    for (std::size_t i = 0; i < store_.size(); ++i) {
-      const StoredSample<Scalar>& st = store_[i];
-      if (!st.has_attitude() || st.outlier()) continue;
-      Mat<Scalar, 3, 6> b;
-      (void)rows(st, &b);
-      meat.noalias() += b.transpose() * s_res * b;
-    }
-    Mat6 n_inv;
-    for (int c = 0; c < 6; ++c) {
-      Vec<Scalar, 6> e = Vec<Scalar, 6>::Zero();
-      e(c) = Scalar(1);
-      n_inv.col(c) = ldlt.solve(e);
-    }
-    const Mat3<Scalar> cov_phi = (n_inv * meat * n_inv).template topLeftCorner<3, 3>();
-    const Mat<Scalar, kEkfStateDim, kEkfStateDim> p = ekf_.covariance();
-    const Mat3<Scalar> a = w.inverse();
-    Scalar sum{0};
-    int k = 0;
+    const Mat6 meat = v_perp * n_tt + (v_par - v_perp) * n_dd;
+    // Parameters (x, phi noise), block-diagonal covariance.
+    Mat<Scalar, kN + 3, kN + 3> p = Mat<Scalar, kN + 3, kN + 3>::Zero();
+    p.template topLeftCorner<kN, kN>() = ekf_.covariance();
+    p.template bottomRightCorner<3, 3>() = ninv_phi.transpose() * meat * ninv_phi;
+    EnvelopeGram<Scalar, kN + 3> gram;
     const bool ok = for_each_envelope_attitude(tilts_, [&](const Mat3<Scalar>& r_bn) {
-      const Vec3<Scalar> m = a * (rm * (r_bn * h_n)) + o;
+      const Vec3<Scalar> m = model.predict_raw(r_bn, h_n);
       const Mat3<Scalar> rt = r_bn.transpose();
-      const Mat3<Scalar> j_phi = rt * skew(Vec3<Scalar>(rmt * (w * (m - o))));
-      const Jx j = rt * rmt * du_dx(m) + j_phi * s_phi;
-      sum += (j * p * j.transpose()).trace() + (j_phi * cov_phi * j_phi.transpose()).trace();
-      ++k;
+      const Vec3<Scalar> hb = rmt * (w * (m - o));
+      const Vec3<Scalar> g = rt * hb;
+      const Scalar gn = g.norm();
+      if (!(gn > Scalar(0))) return;
+      const Mat3<Scalar> j_phi = rt * skew(hb);
+      Mat<Scalar, 3, kN + 3> j;
+      j.template leftCols<kN>() = rt * rmt * du_dx(m) + j_phi * s_phi;
+      j.template rightCols<3>() = j_phi;
+      gram.add(j, Vec3<Scalar>(g / gn));
     });
-    if (!ok || k == 0) return nan;
-    return std::sqrt(std::max(sum, Scalar(0)) / static_cast<Scalar>(3 * k));
+    if (!ok || gram.n == 0) return out;
+    gram.finish();
+    out.enu_nT = gram.vector_rms(p.cwiseProduct(gram.gv).sum());
+    out.f_nT = gram.intensity_rms(p.cwiseProduct(gram.gi).sum());
+    return out;
   }
   // Predicted 1-sigma of the calibrated intensity at the last used sample (inf before the fit).
   Scalar sigma_f_nT() const noexcept {
@@ -334,7 +319,6 @@ CalibratorSolve EkfCalibrator<Scalar, AlignCapacity, InitCapacity>::solve(
   aligned_ = false;
   if (!ekf_.initialised()) return fail(EkfCalCode::kNotInitialised);
   SensorModel<Scalar> model = ekf_.model();
-  Scalar sigma_enu = std::numeric_limits<Scalar>::quiet_NaN();
   if (cfg_.align) {
     align_ = joint_rm_hn(store_, model.w, model.o, cfg_.misalignment);
     switch (align_.status) {
@@ -351,8 +335,6 @@ CalibratorSolve EkfCalibrator<Scalar, AlignCapacity, InitCapacity>::solve(
     }
     model.rm = Quat<Scalar>(li_rm(align_.rm_rad));
     model.rm.normalize();
-    if (ekf_.start_relinearised())
-      sigma_enu = envelope_sigma_enu_nT(model.w, model.o, model.rm_matrix(), align_.h_n);
     SensorModel<Scalar> li;
     if (canonicalize_li(model, &li) != ConversionStatus::kOk)
       return fail(EkfCalCode::kNotLiRepresentable);
@@ -369,8 +351,9 @@ CalibratorSolve EkfCalibrator<Scalar, AlignCapacity, InitCapacity>::solve(
     r.attitude_noise_deg = static_cast<float>(rad_to_deg(align_.residual_rms));
     // From the filter's covariance once its start-up term is relinearised (E-Acc-3).
     if (ekf_.start_relinearised()) {
-      r.calibration_sigma_f_nT = static_cast<float>(envelope_sigma_f_nT(model, align_.h_n));
-      r.calibration_sigma_enu_nT = static_cast<float>(sigma_enu);
+      const OutputSigmas sig = output_sigmas(model, align_.h_n);
+      r.calibration_sigma_f_nT = static_cast<float>(sig.f_nT);
+      r.calibration_sigma_enu_nT = static_cast<float>(sig.enu_nT);
     }
   }
   return r;

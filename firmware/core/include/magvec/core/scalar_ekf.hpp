@@ -580,24 +580,7 @@ class ScalarEkfBase {
   // changed cost, whose gradient at x_T (where the old cost had its minimum) is
   // N_old (x_T - x_old) - g_old + g_T. Skipped (state untouched) when N' is not positive definite.
   void relinearise_start() noexcept {
-    // P^-1 = U^-T D^-1 U^-1; U^-1 by back substitution column by column (U unit upper triangular).
-    StateMat ui = StateMat::Identity();
-    for (int j = 0; j < kN; ++j)
-      for (int i = j - 1; i >= 0; --i) {
-        Scalar v{0};
-        for (int k = i + 1; k <= j; ++k)
-          v += u_(i, k) * ui(k, j);
-        ui(i, j) = -v;
-      }
-    StateMat info;
-    for (int j = 0; j < kN; ++j)
-      for (int i = j; i < kN; ++i) {
-        Scalar v{0};
-        for (int k = 0; k <= j; ++k)
-          v += ui(k, i) * ui(k, j) / d_(k);
-        info(i, j) = v;
-        info(j, i) = v;
-      }
+    StateMat info = ud_information<Scalar, kN>(u_, d_);  // P^-1 from the factors
     StateMat n_t;
     StateVec g_t;
     if (normal_equations(&n_t, &g_t) < 16) return;

@@ -141,6 +141,30 @@ void ud_bierman_update(Mat<Scalar, N, N>& u, Vec<Scalar, N>& d, const Vec<Scalar
   *s_out = alpha;
 }
 
+// The information P^-1 = U^-T D^-1 U^-1 of P = U D U^T, without inverting P: U^-1 (unit upper
+// triangular) by back substitution column by column, then the symmetric product.
+template <typename Scalar, int N>
+Mat<Scalar, N, N> ud_information(const Mat<Scalar, N, N>& u, const Vec<Scalar, N>& d) noexcept {
+  Mat<Scalar, N, N> ui = Mat<Scalar, N, N>::Identity();
+  for (int j = 0; j < N; ++j)
+    for (int i = j - 1; i >= 0; --i) {
+      Scalar v{0};
+      for (int k = i + 1; k <= j; ++k)
+        v += u(i, k) * ui(k, j);
+      ui(i, j) = -v;
+    }
+  Mat<Scalar, N, N> info;
+  for (int j = 0; j < N; ++j)
+    for (int i = j; i < N; ++i) {
+      Scalar v{0};
+      for (int k = 0; k <= j; ++k)
+        v += ui(k, i) * ui(k, j) / d(k);
+      info(i, j) = v;
+      info(j, i) = v;
+    }
+  return info;
+}
+
 // P = U D U^T. False (u, d untouched) unless P is positive definite.
 template <typename Scalar, int N>
 bool ud_factorise(const Mat<Scalar, N, N>& p, Mat<Scalar, N, N>* u_out,

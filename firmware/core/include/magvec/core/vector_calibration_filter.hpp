@@ -12,7 +12,8 @@
 // about the body z axis is held, its gain exactly zero, until the tilt spread reaches the batch
 // methods' limit). Gating, divergence and resets: E-VF-8.
 // Live updates per sample (three sequential scalar updates) or in information folds of
-// fold_samples samples (E-VF-B: accumulated at the last fold's state, then pseudo-measurements).
+// fold_samples samples (E-VF-B: summed at the last fold's state, then the block's mean and trend
+// as pseudo-measurements).
 // Numerics: P = U D U^T (Bierman scalar update, Agee-Turner for process noise, as scalar_ekf.hpp),
 // fields normalised by a reference magnitude, states held as nominal + error so float32 does not
 // lose updates below the resolution of values of order one (E-VF-A).
@@ -134,10 +135,11 @@ struct VfConfig {
   Scalar field_q_nT2_per_s{0};              // diurnal variation / site change
   Scalar sample_interval_s = Scalar(0.01);  // when a sample carries no interval
   // Live samples per information fold (E-VF-B). 1: every sample is three sequential scalar
-  // updates (O(n^2) each). K > 1: each sample's whitened rows are only accumulated, linearised at
-  // the last fold, and every K samples their information enters U-D as a few dozen scalar
-  // pseudo-measurements (about n^3/3 flops once): a microcontroller's per-sample cost drops by
-  // the Bierman updates. The state and covariance the outputs read are those of the last fold.
+  // updates (O(n^2) each). K > 1: each sample's whitened rows are only summed, linearised at the
+  // last fold, and every K samples the block's mean and linear trend enter U-D as seven scalar
+  // pseudo-measurements: a microcontroller's per-sample cost drops by the Bierman updates. What
+  // the rows do faster than linearly within a block is not used (smooth motion: nothing). The
+  // state and covariance the outputs read are those of the last fold.
   int fold_samples = 1;
   bool estimate_time_offset = true;
   Scalar time_offset0_s{0};
@@ -414,6 +416,7 @@ class VectorCalibrationFilter {
     ref_dir_.setZero();
     u_.setIdentity();
     d_.setOnes();
+    ref_hph_ = Scalar(-1);
     held_.fill(false);
     tilts_.reset();
     tilt_released_ = false;
@@ -1003,16 +1006,16 @@ class VectorCalibrationFilter {
     Scalar nis_max{0};
     const StateVec x_lin = lin_at_nominal_ ? StateVec::Zero() : x_;
     ud_ut_times_rows<Scalar, kStates>(u_, hw, &f);
+    const Mat3<Scalar> hph = state_part(f);
     for (int j = 0; j < 3; ++j) {
-      const StateVec& fj = f[static_cast<std::size_t>(j)];
-      const Scalar sj = fj.dot(d_.cwiseProduct(fj)) + Scalar(1);
+      const Scalar sj = hph(j, j) + Scalar(1);
       const Scalar nuj = rw(j) + hw.row(j).dot(x_ - x_lin);
       nu_prior(j) = nuj;
       nis_max = std::max(nis_max, nuj * nuj / sj);
     }
     last_nis_ = nis_max;
     if (gate && cfg_.gate_nis > Scalar(0) && !(nis_max <= cfg_.gate_nis)) return VecResult::kGated;
-    if (live) note_innovation(ex, f, nu_prior);
+    if (live) note_innovation(ex, hph, nu_prior);
     for (int j = 0; j < 3; ++j) {
       const StateVec hj = hw.row(j).transpose();
       const StateVec fj = j == 0 ? f[0] : ut_times(hj);
@@ -1028,6 +1031,22 @@ class VectorCalibrationFilter {
     return VecResult::kApplied;
   }
 
+  // C = Hw P Hw^T from f_j = U^T h_j: f_i^T D f_j. Symmetric: six products over D f_j, not nine
+  // over a fresh D f_j each.
+  Mat3<Scalar> state_part(const std::array<StateVec, 3>& f) const noexcept {
+    std::array<StateVec, 3> df;
+    for (std::size_t j = 0; j < 3; ++j)
+      df[j] = d_.cwiseProduct(f[j]);
+    Mat3<Scalar> hph;
+    for (std::size_t i = 0; i < 3; ++i)
+      for (std::size_t j = i; j < 3; ++j) {
+        const Scalar v = f[i].dot(df[j]);
+        hph(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j)) = v;
+        hph(static_cast<Eigen::Index>(j), static_cast<Eigen::Index>(i)) = v;
+      }
+    return hph;
+  }
+
   // E-VF-10, per live sample at the prior: covariance matching of the whitened innovation y,
   // E[y y^T] = lm Aw + la Bw + lh C, with Aw, Bw = I - Aw the whitened magnetometer and attitude
   // parts, C = Hw P Hw^T the state part, lm, la the ratios of the true to the configured noise
@@ -1040,19 +1059,9 @@ class VectorCalibrationFilter {
   // noise. Running means of the terms are kept; the state part is told apart by its decay.
   // (A replay's innovations start from a diffuse prior, where C dwarfs the noise: live samples
   // only.)
-  void note_innovation(const LinExtras& ex, const std::array<StateVec, 3>& f,
+  // hph: C = Hw P Hw^T (state_part), whose diagonal the gate used too.
+  void note_innovation(const LinExtras& ex, const Mat3<Scalar>& hph,
                        const Vec3<Scalar>& y) noexcept {
-    // Symmetric: six products over D f_j, not nine over a fresh D f_j each.
-    std::array<StateVec, 3> df;
-    for (std::size_t j = 0; j < 3; ++j)
-      df[j] = d_.cwiseProduct(f[j]);
-    Mat3<Scalar> hph;
-    for (std::size_t i = 0; i < 3; ++i)
-      for (std::size_t j = i; j < 3; ++j) {
-        const Scalar v = f[i].dot(df[j]);
-        hph(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j)) = v;
-        hph(static_cast<Eigen::Index>(j), static_cast<Eigen::Index>(i)) = v;
-      }
     // A sample whose predicted innovation is mostly the state's uncertainty (just after a start,
     // or a state released with its prior) says little about the noise and much about how well
     // that uncertainty is known: skipped while the state part exceeds the noise part (tr 3).
@@ -1112,20 +1121,23 @@ class VectorCalibrationFilter {
   }
 
   static constexpr int kFoldNoiseEvery = 2;
-  // Samples accumulated since the last fold (E-VF-B).
+  // Samples accumulated since the last fold (E-VF-B): sums of the rows and residuals and of their
+  // products with the sample time, centred on the block's first accepted sample.
   struct Block {
     int live = 0;                                                  // live samples (gated too)
     int n = 0;                                                     // vector samples accumulated
     int n_ref = 0;                                                 // references accumulated
     Scalar ref_sum{0};                                             // sum of their innovations
     Scalar dt_s{0};                                                // time since the last fold
+    Scalar t0_s{0};                                                // first sample's time
     Mat<Scalar, 3, kStates> h0 = Mat<Scalar, 3, kStates>::Zero();  // first sample's rows
     Vec3<Scalar> y0 = Vec3<Scalar>::Zero();
-    Mat<Scalar, 3, kStates> sh = Mat<Scalar, 3, kStates>::Zero();  // sums of (h - h0)
-    Vec3<Scalar> sy = Vec3<Scalar>::Zero();                        // sums of (y - y0)
-    Vec3<Scalar> see = Vec3<Scalar>::Zero();                       // sums of (y - y0)^2
-    StateMat g = StateMat::Zero();   // sum (h - h0)^T (h - h0), lower triangle
-    StateVec gy = StateVec::Zero();  // sum (h - h0)^T (y - y0)
+    Mat<Scalar, 3, kStates> sh = Mat<Scalar, 3, kStates>::Zero();   // sums of d = h - h0
+    Vec3<Scalar> sy = Vec3<Scalar>::Zero();                         // sums of e = y - y0
+    Vec3<Scalar> see = Vec3<Scalar>::Zero();                        // sums of e^2
+    Scalar st{0}, stt{0};                                           // sums of t, t^2 (t - t0_s)
+    Mat<Scalar, 3, kStates> sth = Mat<Scalar, 3, kStates>::Zero();  // sums of t d
+    Vec3<Scalar> sty = Vec3<Scalar>::Zero();                        // sums of t e
     void clear() noexcept {
       live = 0;
       n = 0;
@@ -1225,14 +1237,14 @@ class VectorCalibrationFilter {
     // alone bounds the true one (S_j = f^T D f + 1 >= 1): the U^T products are needed only when
     // the bound fails the gate, and for the samples E-VF-10 takes.
     Scalar nis = rw.cwiseAbs2().maxCoeff();
-    std::array<StateVec, 3> f;
+    Mat3<Scalar> hph = Mat3<Scalar>::Zero();
     if (noise_sample || (cfg_.gate_nis > Scalar(0) && !(nis <= cfg_.gate_nis))) {
+      std::array<StateVec, 3> f;
       ud_ut_times_rows<Scalar, kStates>(u_, hw, &f);
+      hph = state_part(f);
       nis = Scalar(0);
-      for (int j = 0; j < 3; ++j) {
-        const StateVec& fj = f[static_cast<std::size_t>(j)];
-        nis = std::max(nis, rw(j) * rw(j) / (fj.dot(d_.cwiseProduct(fj)) + Scalar(1)));
-      }
+      for (int j = 0; j < 3; ++j)
+        nis = std::max(nis, rw(j) * rw(j) / (hph(j, j) + Scalar(1)));
     }
     last_nis_ = nis;
     if (cfg_.gate_nis > Scalar(0) && !(nis <= cfg_.gate_nis)) {
@@ -1241,7 +1253,7 @@ class VectorCalibrationFilter {
         return reset(VfResetReason::kConsecutiveRejections);
       return block_step_end(VfStatus::kGated, true);
     }
-    if (noise_sample) note_innovation(ex, f, rw);
+    if (noise_sample) note_innovation(ex, hph, rw);
     consecutive_rejections_ = 0;
     accumulate(hw, Vec3<Scalar>(-rw));
     ++counters_.updates;
@@ -1255,72 +1267,60 @@ class VectorCalibrationFilter {
   }
 
   // The reference's gate at the fold's state (E-VF-4): innovation into *nu; false when gated.
-  // U^T h of the h_n-only row costs a few dozen multiply-adds (first = kHn0).
+  // Its row's h P h^T is the same for every sample between two folds: computed once (ref_hph_).
   bool reference_check(Scalar f, Scalar* nu) noexcept {
     const Vec3<Scalar> hn = full().template segment<3>(kHn0);
     const Scalar n = hn.norm();
     if (!(n > Scalar(0))) return false;
-    if (!(ref_dir_.squaredNorm() > Scalar(0))) ref_dir_ = hn / n;
-    StateVec h = StateVec::Zero();
-    h.template segment<3>(kHn0) = ref_dir_;
-    const StateVec fv = ud_ut_times<Scalar, kStates, true>(u_, h, kHn0);
+    if (!(ref_dir_.squaredNorm() > Scalar(0))) {
+      ref_dir_ = hn / n;
+      ref_hph_ = Scalar(-1);
+    }
+    if (!(ref_hph_ >= Scalar(0))) {
+      StateVec h = StateVec::Zero();
+      h.template segment<3>(kHn0) = ref_dir_;
+      const StateVec fv = ud_ut_times<Scalar, kStates, true>(u_, h, kHn0);
+      ref_hph_ = fv.dot(d_.cwiseProduct(fv));
+    }
     const Scalar sf = reference_sigma();
     *nu = f - ref_dir_.dot(hn);
-    const Scalar nis = *nu * *nu / (fv.dot(d_.cwiseProduct(fv)) + sf * sf);
+    const Scalar nis = *nu * *nu / (ref_hph_ + sf * sf);
     return !(cfg_.gate_nis > Scalar(0)) || nis <= cfg_.gate_nis;
   }
 
-  // Accumulates a sample's whitened rows hw and residuals y (y = hw dx + noise): centred on the
-  // block's first sample, so the scatter that carries the block's new directions is summed from
-  // differences, not recovered by cancellation from sums of near-equal rows (E-VF-B).
+  // Accumulates a sample's whitened rows hw and residuals y (y = hw dx + noise) at the block time
+  // blk_.dt_s: centred on the block's first sample, so that the differences that carry the block's
+  // variation keep their digits in float32 (E-VF-B).
   void accumulate(const Mat<Scalar, 3, kStates>& hw, const Vec3<Scalar>& y) noexcept {
     if (blk_.n == 0) {
+      blk_.t0_s = blk_.dt_s;
       blk_.h0 = hw;
       blk_.y0 = y;
       blk_.sh.setZero();
       blk_.sy.setZero();
       blk_.see.setZero();
-      blk_.g.setZero();
-      blk_.gy.setZero();
+      blk_.st = Scalar(0);
+      blk_.stt = Scalar(0);
+      blk_.sth.setZero();
+      blk_.sty.setZero();
     } else {
-      const Mat<Scalar, 3, kStates> dh = hw - blk_.h0;
+      const Scalar t = blk_.dt_s - blk_.t0_s;
       const Vec3<Scalar> e = y - blk_.y0;
-      blk_.sh += dh;
+      // Column-major: the three rows of a column are contiguous.
+      const Scalar* hp = hw.data();
+      const Scalar* h0 = blk_.h0.data();
+      Scalar* sh = blk_.sh.data();
+      Scalar* sth = blk_.sth.data();
+      for (int i = 0; i < 3 * kStates; ++i) {
+        const Scalar d = hp[i] - h0[i];
+        sh[i] += d;
+        sth[i] += t * d;
+      }
       blk_.sy += e;
       blk_.see += e.cwiseProduct(e);
-      // The lower triangle column by column: column i of g and the three rows of dh from i on
-      // are contiguous (column-major), the M4F's loads and stores stay sequential.
-      // Zero columns add nothing: trailing ones (the temperature coefficients without a
-      // temperature input, the last three states) end the loops early.
-      const Scalar* dp = dh.data();
-      std::ptrdiff_t end = kStates;
-      while (end > 0 && dp[3 * end - 3] == Scalar(0) && dp[3 * end - 2] == Scalar(0) &&
-             dp[3 * end - 1] == Scalar(0))
-        --end;
-      // Two columns per pass: each row of dh below them is loaded once for both (each entry is
-      // still summed in the same order).
-      std::ptrdiff_t i = 0;
-      for (; i + 1 < end; i += 2) {
-        const Scalar* di = dp + 3 * i;
-        const Scalar a0 = di[0], a1 = di[1], a2 = di[2];
-        const Scalar b0 = di[3], b1 = di[4], b2 = di[5];
-        blk_.gy(i) += a0 * e(0) + a1 * e(1) + a2 * e(2);
-        blk_.gy(i + 1) += b0 * e(0) + b1 * e(1) + b2 * e(2);
-        Scalar* ga = &blk_.g(0, i);
-        Scalar* gb = &blk_.g(0, i + 1);
-        ga[i] += a0 * a0 + a1 * a1 + a2 * a2;
-        di += 3;
-        for (std::ptrdiff_t j = i + 1; j < end; ++j, di += 3) {
-          const Scalar c0 = di[0], c1 = di[1], c2 = di[2];
-          ga[j] += a0 * c0 + a1 * c1 + a2 * c2;
-          gb[j] += b0 * c0 + b1 * c1 + b2 * c2;
-        }
-      }
-      if (i < end) {
-        const Scalar* di = dp + 3 * i;
-        blk_.gy(i) += di[0] * e(0) + di[1] * e(1) + di[2] * e(2);
-        blk_.g(i, i) += di[0] * di[0] + di[1] * di[1] + di[2] * di[2];
-      }
+      blk_.sty += t * e;
+      blk_.st += t;
+      blk_.stt += t * t;
     }
     ++blk_.n;
   }
@@ -1333,16 +1333,18 @@ class VectorCalibrationFilter {
     StateVec k;
     Scalar s;
     ud_bierman_update<Scalar, kStates, true>(u_, d_, fv, r, &k, &s, first);
+    ref_hph_ = Scalar(-1);
     x_ += k * (nu / s);
     return nu * nu / s;
   }
 
   // E-VF-B: the block's process noise, then its information as pseudo-measurements: the
-  // reference's mean innovation along its fixed direction; the three mean rows (variance 1/n);
-  // the scatter S = sum (h - hbar)^T (h - hbar) as L D L^T, each column of L one measurement of
-  // variance 1/D_i. Together exactly the information sum h^T h and sum h^T y of the block's rows,
-  // every row linearised at the fold's state. The block's NIS (pseudo-measurements' plus the
-  // scatter's least-squares residual, 3 n degrees of freedom) feeds the divergence window.
+  // reference's mean innovation along its fixed direction; the three mean rows (variance 1/n); the
+  // three trend rows, the rows' and residuals' regressions on the sample time (variance 1/T).
+  // Mean and trend are two orthogonal projections of the block's rows, each linearised at the
+  // fold's state: exactly the information of rows that vary linearly over the block, what varies
+  // faster is left out (never counted twice). The block's NIS (the pseudo-measurements' plus the
+  // residuals about mean and trend, 3 n degrees of freedom) feeds the divergence window.
   void fold_block() noexcept {
     if (blk_.dt_s > Scalar(0)) add_process_noise(blk_.dt_s);
     const StateVec x_lin = x_;
@@ -1356,64 +1358,23 @@ class VectorCalibrationFilter {
     if (blk_.n > 0) {
       const Scalar inv = Scalar(1) / static_cast<Scalar>(blk_.n);
       Scalar chi2{0};
+      Scalar energy{0};
       for (int j = 0; j < 3; ++j) {
         const StateVec hbar = (blk_.h0.row(j) + blk_.sh.row(j) * inv).transpose();
         chi2 += pseudo_update(hbar, blk_.y0(j) + blk_.sy(j) * inv, inv, 0, x_lin);
-      }
-      // Scatter about the mean, in place in the lower triangle.
-      StateMat& a = blk_.g;
-      StateVec w = blk_.gy;
-      Scalar energy{0};
-      for (int j = 0; j < 3; ++j)
         energy += blk_.see(j) - blk_.sy(j) * blk_.sy(j) * inv;
-      for (int i = 0; i < kStates; ++i) {
-        w(i) -=
-            (blk_.sh(0, i) * blk_.sy(0) + blk_.sh(1, i) * blk_.sy(1) + blk_.sh(2, i) * blk_.sy(2)) *
-            inv;
-        for (int j = i; j < kStates; ++j)
-          a(j, i) -= (blk_.sh(0, i) * blk_.sh(0, j) + blk_.sh(1, i) * blk_.sh(1, j) +
-                      blk_.sh(2, i) * blk_.sh(2, j)) *
-                     inv;
       }
-      // L D L^T in place (L strictly below the diagonal, D on it). A pivot at rounding level of
-      // its diagonal carries no information the block has: its direction is dropped.
-      const Scalar tol = Scalar(1e-3);
-      StateVec dl;
-      for (int j = 0; j < kStates; ++j) {
-        StateVec ld;  // L(j, k) D(k)
-        Scalar dj = a(j, j);
-        for (int k = 0; k < j; ++k) {
-          ld(k) = a(j, k) * dl(k);
-          dj -= ld(k) * a(j, k);
+      // Trend: sum (t - tbar) h / T with T = sum (t - tbar)^2; the centring on h0 cancels.
+      const Scalar tbar = blk_.st * inv;
+      const Scalar tt = blk_.stt - blk_.st * tbar;
+      if (blk_.n > 1 && tt > Scalar(0)) {
+        const Scalar inv_t = Scalar(1) / tt;
+        for (int j = 0; j < 3; ++j) {
+          const StateVec a = ((blk_.sth.row(j) - blk_.sh.row(j) * tbar) * inv_t).transpose();
+          const Scalar z = (blk_.sty(j) - blk_.sy(j) * tbar) * inv_t;
+          chi2 += pseudo_update(a, z, inv_t, 0, x_lin);
+          energy -= z * z * tt;
         }
-        if (!(dj > tol * a(j, j))) {
-          dl(j) = Scalar(0);
-          for (int i = j + 1; i < kStates; ++i)
-            a(i, j) = Scalar(0);
-          continue;
-        }
-        dl(j) = dj;
-        for (int i = j + 1; i < kStates; ++i) {
-          Scalar v = a(i, j);
-          for (int k = 0; k < j; ++k)
-            v -= a(i, k) * ld(k);
-          a(i, j) = v / dj;
-        }
-      }
-      // w = L^-1 eta; measurement i: L(:, i)^T dx = w_i / D_i, variance 1 / D_i.
-      for (int i = 0; i < kStates; ++i)
-        for (int k = 0; k < i; ++k)
-          w(i) -= a(i, k) * w(k);
-      for (int i = 0; i < kStates; ++i) {
-        if (!(dl(i) > Scalar(0))) continue;
-        StateVec h;
-        for (int m = 0; m < i; ++m)
-          h(m) = Scalar(0);
-        h(i) = Scalar(1);
-        for (int m = i + 1; m < kStates; ++m)
-          h(m) = a(m, i);
-        energy -= w(i) * w(i) / dl(i);
-        chi2 += pseudo_update(h, w(i) / dl(i), Scalar(1) / dl(i), i, x_lin);
       }
       window_nis_sum_ += chi2 + std::max(energy, Scalar(0));
       window_nis_n_ += 3 * blk_.n;
@@ -1490,15 +1451,19 @@ class VectorCalibrationFilter {
   }
   bool u_upper_finite() const noexcept { return ud_upper_finite<Scalar, kStates>(u_); }
   // Agee-Turner: U D U^T + c e_k e_k^T, c > 0.
+  // Every change of U or D goes through these four functions and restart(): each drops ref_hph_.
   void add_diagonal_noise(int k, Scalar c) noexcept {
     ud_add_diagonal_noise<Scalar, kStates>(u_, d_, k, c);
+    ref_hph_ = Scalar(-1);
   }
   // Bierman's scalar update for f = U^T h and variance r: unnormalised gain k into *k_out (the
   // caller's local, not f) and s = h P h^T + r into *s_out.
   void bierman(const StateVec& f, Scalar r, StateVec* k_out, Scalar* s_out) noexcept {
     ud_bierman_update<Scalar, kStates, true>(u_, d_, f, r, k_out, s_out);
+    ref_hph_ = Scalar(-1);
   }
   bool ud_factorise(const StateMat& p) noexcept {
+    ref_hph_ = Scalar(-1);
     return core::ud_factorise<Scalar, kStates>(p, &u_, &d_);
   }
 
@@ -1558,7 +1523,8 @@ class VectorCalibrationFilter {
   Scalar last_nis_{0};
   Scalar noise_factor_{1};                       // replay damping (1 when running live)
   Vec3<Scalar> ref_dir_ = Vec3<Scalar>::Zero();  // reference update's direction (E-VF-4)
-  Block blk_{};                                  // E-VF-B (fold_samples > 1)
+  Scalar ref_hph_{-1};  // its row's h P h^T at the current U-D (reference_check); < 0: not known
+  Block blk_{};         // E-VF-B (fold_samples > 1)
   // E-VF-10: running means over the live samples since the last (re)start.
   // E-VF-10: running means of the covariance matching over the live samples since the (re)start.
   std::uint32_t nz_n_ = 0;

@@ -108,6 +108,32 @@ TEST(Frames, RotationAngleBetweenIsAccurateFromZeroToPi) {
   EXPECT_NEAR(rotation_angle_between(af, bf), 1e-4f, 1e-8f);
 }
 
+// The n-frame rate from two quaternions is the one from their rotation matrices, whatever the
+// quaternions' signs, and a known turn about the n-frame's up axis gives its rate.
+TEST(Frames, RateFromQuaternionsIsTheRateFromTheirAttitudes) {
+  std::mt19937_64 rng(3);
+  std::normal_distribution<double> g(0.0, 1.0);
+  for (int i = 0; i < 200; ++i) {
+    const Quat<double> q0 = Quat<double>(g(rng), g(rng), g(rng), g(rng)).normalized();
+    const Vec3<double> turn(0.05 * g(rng), 0.05 * g(rng), 0.05 * g(rng));  // rad, n frame
+    const Quat<double> q1 =
+        (Quat<double>(Eigen::AngleAxis<double>(turn.norm(), turn.normalized())) * q0).normalized();
+    const Vec3<double> want = rate_n_from_attitudes(r_bn_from_quat(q0), r_bn_from_quat(q1), 0.02);
+    const Quat<double> q1_neg(-q1.w(), -q1.x(), -q1.y(), -q1.z());
+    for (const Quat<double>& b : {q1, q1_neg}) {
+      const Vec3<double> got = rate_n_from_quats(q0, b, 0.02);
+      EXPECT_LT((got - want).norm(), 1e-9 * want.norm()) << i;
+      EXPECT_LT((got - turn / 0.02).norm(), 1e-9 * want.norm()) << i;
+    }
+  }
+  const Quat<float> a = Quat<float>::Identity();
+  const Quat<float> b(Eigen::AngleAxis<float>(0.01f, Vec3<float>::UnitZ()));
+  const Vec3<float> r = rate_n_from_quats(a, b, 0.02f);
+  EXPECT_NEAR(r.z(), 0.5f, 1e-5f);
+  EXPECT_NEAR(r.head<2>().norm(), 0.0f, 1e-6f);
+  EXPECT_EQ(rate_n_from_quats(a, b, 0.0f), Vec3<float>::Zero());
+}
+
 TEST(Frames, FloatInstantiation) {
   const Mat3<float> r = r_bn_from_li(LiEuler<float>{0.1f, 0.2f, 0.3f});
   const LiEuler<float> e = li_from_r_bn(r);

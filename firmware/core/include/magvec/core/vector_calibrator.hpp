@@ -511,6 +511,14 @@ class VectorCalibrator {
     *r = r_bn_from_quat(q.q_nb);
     return true;
   }
+  // The held attitude at t_us as the INS quaternion q_nb; false outside the held ones.
+  bool quat_at(std::int64_t t_us, Quat<Scalar>* q_nb) const noexcept {
+    if (t_us < 0) return false;
+    const AttitudeQuery<Scalar> q = att_.at(static_cast<std::uint64_t>(t_us));
+    if (q.status != AttitudeQueryStatus::kInterpolated) return false;
+    *q_nb = q.q_nb;
+    return true;
+  }
   static AttitudeBufferConfig hold_buffer_config(Scalar max_span_s) noexcept {
     AttitudeBufferConfig c;
     c.max_gap_us = static_cast<std::uint64_t>(std::lround(max_span_s * Scalar(1e6)));
@@ -598,15 +606,16 @@ CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacit
   const std::uint64_t t_us = held(i).t_us;
   const Scalar a = offset_now();
   const Scalar w = cfg_.rate_half_span_s;
-  Mat3<Scalar> r_a, r_lo, r_hi;
+  Mat3<Scalar> r_a;
   if (attitude_at(shifted_us(t_us, a), &r_a)) {
     v.r_bn = r_a;
     v.attitude_offset_s = a;
   }
   const Scalar tq = v.attitude_offset_s;
-  if (w > Scalar(0) && attitude_at(shifted_us(t_us, tq + w), &r_lo) &&
-      attitude_at(shifted_us(t_us, tq - w), &r_hi)) {
-    v.omega_n_rad_s = rate_n_from_attitudes(r_lo, r_hi, Scalar(2) * w);
+  Quat<Scalar> q_lo, q_hi;
+  if (w > Scalar(0) && quat_at(shifted_us(t_us, tq + w), &q_lo) &&
+      quat_at(shifted_us(t_us, tq - w), &q_hi)) {
+    v.omega_n_rad_s = rate_n_from_quats(q_lo, q_hi, Scalar(2) * w);
   } else {
     // The neighbours' rate (independent of the sample's own attitude noise).
     const bool lo_ok = i > 0;

@@ -79,12 +79,16 @@ core::VectorCalibratorConfig<Scalar> vector_calibrator_config(
   core::VectorCalibratorConfig<Scalar> c;
   c.filter.sample_interval_s = static_cast<Scalar>(1.0 / s.rate_hz);
   // Information folds of 16 samples (E-VF-B): the per-sample Bierman updates (three of the
-  // 19-state filter's, ~2 300 instructions each on the M4F, plus their U^T products) become an
-  // accumulation, and a fold every 16 samples costs about what two samples did.
+  // 19-state filter's, ~2 300 instructions each on the M4F, plus their U^T products) become sums,
+  // and every 16 samples the block's mean and trend enter as seven pseudo-measurements. Folds of
+  // 32 would halve that share, but the filter then tracked a 300 nT offset drift too late and its
+  // float32 moved more than 0.1 sigma from double (vector_calibration_filter_test).
   c.filter.fold_samples = 16;
-  // The output envelope's readiness check (~150 000 instructions) every 128 samples, 2.6 s at
-  // 50 Hz, instead of every 64: 1 200 instructions per sample less.
-  c.refresh_every = 128;
+  // The output envelope's readiness check (~150 000 instructions) every 256 samples, 5.1 s at
+  // 50 Hz, instead of every 64: 1 800 instructions per sample less. Readiness waits on the noise
+  // figures' 5 % rule here (noise samples every 2nd, E-VF-B), which the calibrator checks at every
+  // sample against the envelope's last figure.
+  c.refresh_every = 256;
   return c;
 }
 

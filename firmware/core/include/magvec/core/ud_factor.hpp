@@ -54,6 +54,28 @@ void ud_ut_times_rows(const Mat<Scalar, N, N>& u, const Mat<Scalar, 3, N>& h,
   }
 }
 
+// The same, with C = H P H^T = F^T D F (F = [f0 f1 f2], P = U D U^T) summed in the same pass while
+// each column's three f values are at hand, instead of a second pass over F and D.
+template <typename Scalar, int N>
+void ud_ut_times_rows(const Mat<Scalar, N, N>& u, const Vec<Scalar, N>& d,
+                      const Mat<Scalar, 3, N>& h, std::array<Vec<Scalar, N>, 3>* f,
+                      Mat3<Scalar>* c) noexcept {
+  ud_ut_times_rows<Scalar, N>(u, h, f);
+  const Vec<Scalar, N>&f0 = (*f)[0], &f1 = (*f)[1], &f2 = (*f)[2];
+  Scalar c00{0}, c01{0}, c02{0}, c11{0}, c12{0}, c22{0};
+  for (int j = 0; j < N; ++j) {
+    const Scalar a0 = f0(j), a1 = f1(j), a2 = f2(j);
+    const Scalar d0 = d(j) * a0, d1 = d(j) * a1, d2 = d(j) * a2;
+    c00 += a0 * d0;
+    c01 += a0 * d1;
+    c02 += a0 * d2;
+    c11 += a1 * d1;
+    c12 += a1 * d2;
+    c22 += a2 * d2;
+  }
+  *c << c00, c01, c02, c01, c11, c12, c02, c12, c22;
+}
+
 // All of U finite, tested on the strict upper triangle only (the rest never changes): v * 0 is 0
 // for a finite v but NaN for inf/NaN, an exact test at one multiply-add per element.
 template <typename Scalar, int N>

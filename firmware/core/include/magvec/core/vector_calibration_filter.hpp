@@ -1005,8 +1005,8 @@ class VectorCalibrationFilter {
     Vec3<Scalar> nu_prior;
     Scalar nis_max{0};
     const StateVec x_lin = lin_at_nominal_ ? StateVec::Zero() : x_;
-    ud_ut_times_rows<Scalar, kStates>(u_, hw, &f);
-    const Mat3<Scalar> hph = state_part(f);
+    Mat3<Scalar> hph;
+    ud_ut_times_rows<Scalar, kStates>(u_, d_, hw, &f, &hph);
     for (int j = 0; j < 3; ++j) {
       const Scalar sj = hph(j, j) + Scalar(1);
       const Scalar nuj = rw(j) + hw.row(j).dot(x_ - x_lin);
@@ -1031,22 +1031,6 @@ class VectorCalibrationFilter {
     return VecResult::kApplied;
   }
 
-  // C = Hw P Hw^T from f_j = U^T h_j: f_i^T D f_j. Symmetric: six products over D f_j, not nine
-  // over a fresh D f_j each.
-  Mat3<Scalar> state_part(const std::array<StateVec, 3>& f) const noexcept {
-    std::array<StateVec, 3> df;
-    for (std::size_t j = 0; j < 3; ++j)
-      df[j] = d_.cwiseProduct(f[j]);
-    Mat3<Scalar> hph;
-    for (std::size_t i = 0; i < 3; ++i)
-      for (std::size_t j = i; j < 3; ++j) {
-        const Scalar v = f[i].dot(df[j]);
-        hph(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j)) = v;
-        hph(static_cast<Eigen::Index>(j), static_cast<Eigen::Index>(i)) = v;
-      }
-    return hph;
-  }
-
   // E-VF-10, per live sample at the prior: covariance matching of the whitened innovation y,
   // E[y y^T] = lm Aw + la Bw + lh C, with Aw, Bw = I - Aw the whitened magnetometer and attitude
   // parts, C = Hw P Hw^T the state part, lm, la the ratios of the true to the configured noise
@@ -1059,7 +1043,7 @@ class VectorCalibrationFilter {
   // noise. Running means of the terms are kept; the state part is told apart by its decay.
   // (A replay's innovations start from a diffuse prior, where C dwarfs the noise: live samples
   // only.)
-  // hph: C = Hw P Hw^T (state_part), whose diagonal the gate used too.
+  // hph: C = Hw P Hw^T (ud_ut_times_rows), whose diagonal the gate used too.
   void note_innovation(const LinExtras& ex, const Mat3<Scalar>& hph,
                        const Vec3<Scalar>& y) noexcept {
     // A sample whose predicted innovation is mostly the state's uncertainty (just after a start,
@@ -1240,8 +1224,7 @@ class VectorCalibrationFilter {
     Mat3<Scalar> hph = Mat3<Scalar>::Zero();
     if (noise_sample || (cfg_.gate_nis > Scalar(0) && !(nis <= cfg_.gate_nis))) {
       std::array<StateVec, 3> f;
-      ud_ut_times_rows<Scalar, kStates>(u_, hw, &f);
-      hph = state_part(f);
+      ud_ut_times_rows<Scalar, kStates>(u_, d_, hw, &f, &hph);
       nis = Scalar(0);
       for (int j = 0; j < 3; ++j)
         nis = std::max(nis, rw(j) * rw(j) / (hph(j, j) + Scalar(1)));

@@ -115,7 +115,9 @@ TEST(Frames, RateFromQuaternionsIsTheRateFromTheirAttitudes) {
   std::normal_distribution<double> g(0.0, 1.0);
   for (int i = 0; i < 200; ++i) {
     const Quat<double> q0 = Quat<double>(g(rng), g(rng), g(rng), g(rng)).normalized();
-    const Vec3<double> turn(0.05 * g(rng), 0.05 * g(rng), 0.05 * g(rng));  // rad, n frame
+    // rad, n frame: from a milliradian to half a radian (the series below 0.1 rad, atan2 above).
+    const Vec3<double> turn =
+        std::pow(10.0, -3.0 + 2.7 * (i % 10) / 9.0) * Vec3<double>(g(rng), g(rng), g(rng));
     const Quat<double> q1 =
         (Quat<double>(Eigen::AngleAxis<double>(turn.norm(), turn.normalized())) * q0).normalized();
     const Vec3<double> want = rate_n_from_attitudes(r_bn_from_quat(q0), r_bn_from_quat(q1), 0.02);

@@ -505,13 +505,12 @@ class VectorCalibrator {
   // R_bn at t_us interpolated between the held attitudes (the pipeline's AttitudeBuffer, kept
   // alongside the ring: bracketing attitudes at most max_rate_span_s apart); false outside them.
   bool attitude_at(std::int64_t t_us, Mat3<Scalar>* r) const noexcept {
-    if (t_us < 0) return false;
-    const AttitudeQuery<Scalar> q = att_.at(static_cast<std::uint64_t>(t_us));
-    if (q.status != AttitudeQueryStatus::kInterpolated) return false;
-    *r = r_bn_from_quat(q.q_nb);
+    Quat<Scalar> q_nb;
+    if (!quat_at(t_us, &q_nb)) return false;
+    *r = r_bn_from_quat(q_nb);
     return true;
   }
-  // The held attitude at t_us as the INS quaternion q_nb; false outside the held ones.
+  // The same as the INS quaternion q_nb.
   bool quat_at(std::int64_t t_us, Quat<Scalar>* q_nb) const noexcept {
     if (t_us < 0) return false;
     const AttitudeQuery<Scalar> q = att_.at(static_cast<std::uint64_t>(t_us));

@@ -16,6 +16,26 @@ inline constexpr int kCoverageBands = 4;
 inline constexpr int kCoverageSectors = 8;
 inline constexpr int kCoverageCells = kCoverageBands * kCoverageSectors;
 
+// Azimuth sector (0..7) of (x, y): floor((atan2(y, x) + pi) / (pi / 4)), 8 taken as 7, decided by
+// comparisons instead of an arctangent (every sample calls it: 330 instructions on the M4F).
+// Exact on the sector boundaries (|y| = |x|, an axis), signed zeros as atan2 takes them.
+template <typename Scalar>
+int coverage_sector(Scalar x, Scalar y) noexcept {
+  const Scalar ax = std::abs(x), ay = std::abs(y);
+  if (ay == Scalar(0)) {
+    // atan2(+-0, x): +-0 for x > 0 or +0; +-pi for x < 0 or -0.
+    const bool negative_x = x < Scalar(0) || (x == Scalar(0) && std::signbit(x));
+    if (!negative_x) return 4;
+    return std::signbit(y) ? 0 : 7;
+  }
+  if (y > Scalar(0)) {                          // atan2 in (0, pi)
+    if (x > Scalar(0)) return ay < ax ? 4 : 5;  // [0, pi/4), [pi/4, pi/2)
+    return ay > ax ? 6 : 7;                     // [pi/2, 3pi/4), [3pi/4, pi)
+  }
+  if (x < Scalar(0)) return ay < ax ? 0 : 1;  // (-pi, -3pi/4), [-3pi/4, -pi/2)
+  return ay > ax ? 2 : 3;                     // [-pi/2, -pi/4), [-pi/4, 0)
+}
+
 // Cell index (0..31) of a direction; d need not be unit length but must be non-zero.
 template <typename Scalar>
 unsigned coverage_cell(const Vec3<Scalar>& d) noexcept {
@@ -23,10 +43,7 @@ unsigned coverage_cell(const Vec3<Scalar>& d) noexcept {
   const Scalar z = len > Scalar(0) ? d(2) / len : Scalar(0);
   int band = static_cast<int>((z + Scalar(1)) * Scalar(0.5) * Scalar(kCoverageBands));
   band = std::clamp(band, 0, kCoverageBands - 1);
-  const Scalar az = std::atan2(d(1), d(0)) + kPi<Scalar>;
-  int sector = static_cast<int>(az / (Scalar(2) * kPi<Scalar>)*Scalar(kCoverageSectors));
-  sector = std::clamp(sector, 0, kCoverageSectors - 1);
-  return static_cast<unsigned>(band * kCoverageSectors + sector);
+  return static_cast<unsigned>(band * kCoverageSectors + coverage_sector(d(0), d(1)));
 }
 
 // The set of cells hit so far.

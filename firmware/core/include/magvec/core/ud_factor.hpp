@@ -54,8 +54,8 @@ void ud_ut_times_rows(const Mat<Scalar, N, N>& u, const Mat<Scalar, 3, N>& h,
   }
 }
 
-// The same, with C = H P H^T = F^T D F (F = [f0 f1 f2], P = U D U^T) summed in the same pass while
-// each column's three f values are at hand, instead of a second pass over F and D.
+// The same, and C = H P H^T = F^T D F (F = [f0 f1 f2], P = U D U^T) from one pass over F and D
+// with its six sums in registers (no D f temporaries); the callers' gate reads its diagonal.
 template <typename Scalar, int N>
 void ud_ut_times_rows(const Mat<Scalar, N, N>& u, const Vec<Scalar, N>& d,
                       const Mat<Scalar, 3, N>& h, std::array<Vec<Scalar, N>, 3>* f,

@@ -2,6 +2,9 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
+#include <random>
+
 #include "magvec/core/frames.hpp"
 #include "support/alloc_counter.hpp"
 
@@ -38,6 +41,27 @@ TEST(AttitudeBuffer, SlerpIsExactForConstantRateAboutAFixedAxis) {
   far.coeffs() = -far.coeffs();
   b2.insert(100, far);
   EXPECT_LT(angle_between(b2.at(50).q_nb, about_z(core::kPi<double>)), 1e-12);
+}
+
+// The same for the small steps between INS epochs, where the slerp takes the polynomials of
+// E-Att-2 instead of atan2, sin and cos: a microradian to 0.3 rad, inside the interval and
+// extrapolated to three times it, in double and float.
+TEST(AttitudeBuffer, SlerpIsExactForSmallStepsAndExtrapolation) {
+  std::mt19937_64 rng(5);
+  std::normal_distribution<double> g(0.0, 1.0);
+  for (int i = 0; i < 300; ++i) {
+    const Vec3<double> axis(g(rng), g(rng), g(rng));
+    const double a0 = g(rng);
+    const double step = std::pow(10.0, -6.0 + 5.5 * (i % 30) / 29.0);
+    const Q q0 = about(axis, a0), q1 = about(axis, a0 + step);
+    for (double f : {0.0, 0.25, 0.5, 0.9, 1.0, 2.0, 3.0}) {
+      const Q want = about(axis, a0 + f * step);
+      EXPECT_LT(angle_between(slerp_unit(q0, q1, f), want), 2e-15) << step << " " << f;
+      const Quat<float> got_f = slerp_unit(Quat<float>(q0.cast<float>()),
+                                           Quat<float>(q1.cast<float>()), static_cast<float>(f));
+      EXPECT_LT(angle_between(got_f.cast<double>(), want), 1e-6) << step << " " << f;
+    }
+  }
 }
 
 TEST(AttitudeBuffer, FloatMatchesDouble) {

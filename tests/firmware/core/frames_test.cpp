@@ -136,6 +136,45 @@ TEST(Frames, RateFromQuaternionsIsTheRateFromTheirAttitudes) {
   EXPECT_EQ(rate_n_from_quats(a, b, 0.0f), Vec3<float>::Zero());
 }
 
+// The small-rotation polynomials (E-Att-2) are the library's rotation to double rounding on both
+// sides of their 0.2 rad threshold, as matrix and as quaternion, and float follows.
+TEST(Frames, SmallRotationsAreTheLibrarysRotation) {
+  std::mt19937_64 rng(4);
+  std::normal_distribution<double> g(0.0, 1.0);
+  for (int i = 0; i < 400; ++i) {
+    // 1e-9 to 3 rad, every decade and around the threshold.
+    const double a = i % 40 == 0 ? 0.2 * (1.0 + 1e-12 * (i % 80 == 0 ? -1 : 1))
+                                 : std::pow(10.0, -9.0 + 9.48 * (i % 37) / 36.0);
+    const Vec3<double> axis = Vec3<double>(g(rng), g(rng), g(rng)).normalized();
+    const Vec3<double> v = a * axis;
+    const Eigen::AngleAxis<double> aa(a, axis);
+    EXPECT_LT((exp_so3(v) - aa.toRotationMatrix()).cwiseAbs().maxCoeff(), 1e-15) << a;
+    const Quat<double> q = quat_exp(v);
+    EXPECT_LT((q.coeffs() - Quat<double>(aa).coeffs()).cwiseAbs().maxCoeff(), 1e-15) << a;
+    EXPECT_LT(std::abs(q.norm() - 1.0), 1e-15) << a;
+    // sin(a)/a and (1 - cos a)/a^2 keep their relative digits where the library's forms lose them.
+    const RotationCoefficients<double> c = rotation_coefficients(a * a);
+    EXPECT_NEAR(c.cos, std::cos(a), 1e-15) << a;
+    EXPECT_NEAR(c.sinc, std::sin(a) / a, 1e-15) << a;
+    if (a > 1e-3) {
+      EXPECT_NEAR(c.vers, 2.0 * std::pow(std::sin(0.5 * a), 2) / (a * a), 1e-15) << a;
+    }
+    if (a < 1e-6) {
+      EXPECT_NEAR(c.vers, 0.5 - a * a / 24.0, 1e-16) << a;  // where 1 - cos a has no digits
+    }
+    const Mat3<float> rf = exp_so3(Vec3<float>(v.cast<float>()));
+    EXPECT_LT((rf.cast<double>() - aa.toRotationMatrix()).cwiseAbs().maxCoeff(), 3e-7) << a;
+  }
+  const Vec3<double> zero = Vec3<double>::Zero();
+  EXPECT_EQ(exp_so3(zero), Mat3<double>::Identity());
+  EXPECT_EQ(quat_exp(zero).coeffs(), Quat<double>::Identity().coeffs());
+  // atan(t)/t to rounding below its threshold.
+  for (double t : {0.0, 1e-8, 1e-4, 0.01, 0.03, 0.0499}) {
+    const double want = t > 0 ? std::atan(t) / t : 1.0;
+    EXPECT_NEAR(atan_over_t(t * t), want, 1e-15) << t;
+  }
+}
+
 TEST(Frames, FloatInstantiation) {
   const Mat3<float> r = r_bn_from_li(LiEuler<float>{0.1f, 0.2f, 0.3f});
   const LiEuler<float> e = li_from_r_bn(r);

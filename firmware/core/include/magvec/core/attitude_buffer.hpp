@@ -23,6 +23,7 @@
 #include <cstddef>
 #include <cstdint>
 
+#include "magvec/core/frames.hpp"
 #include "magvec/core/types.hpp"
 
 namespace magvec::core {
@@ -76,19 +77,31 @@ struct AttitudeQuery {
 };
 
 // q0 * exp(f * log(q0^-1 q1)) along the shorter arc; valid for f outside [0, 1] (extrapolation).
+// d = q0^-1 q1 = (w, v) turns by 2 theta, theta = atan(|v| / w); the step is
+// (cos(f theta), sin(f theta) v / |v|). Between INS epochs theta is a few milliradians: atan's and
+// the sine's and cosine's polynomials (frames.hpp) instead of atan2, sin and cos.
 template <typename Scalar>
 Quat<Scalar> slerp_unit(const Quat<Scalar>& q0, const Quat<Scalar>& q1, Scalar f) noexcept {
   Quat<Scalar> d = q0.conjugate() * q1;
   if (d.w() < Scalar(0)) d.coeffs() = -d.coeffs();
-  const Scalar vnorm = d.vec().norm();
-  const Scalar angle = Scalar(2) * std::atan2(vnorm, d.w());
+  const Scalar w = d.w();
+  const Scalar v2 = d.vec().squaredNorm();
   Quat<Scalar> step;
-  if (vnorm < Scalar(1e-12)) {
-    // First order: exp(f * v) with v = d.vec() (angle ~ 2 |v|).
-    step = Quat<Scalar>(Scalar(1), f * d.x(), f * d.y(), f * d.z());
-    step.normalize();
-  } else {
-    const Scalar half = Scalar(0.5) * f * angle;
+  bool small = false;
+  if (v2 < Scalar(kSmallAtanSq) * w * w) {
+    const Scalar theta_per_v = atan_over_t(v2 / (w * w)) / w;  // theta / |v|
+    const Scalar ft = f * theta_per_v;
+    const Scalar a2 = ft * ft * v2;  // (f theta)^2
+    if (a2 < Scalar(kSmallRotationSq)) {
+      const RotationCoefficients<Scalar> c = rotation_coefficients(a2);
+      const Scalar k = c.sinc * ft;  // sin(f theta) / |v|
+      step = Quat<Scalar>(c.cos, k * d.x(), k * d.y(), k * d.z());
+      small = true;
+    }
+  }
+  if (!small) {
+    const Scalar vnorm = std::sqrt(v2);
+    const Scalar half = f * std::atan2(vnorm, w);
     const Scalar s = std::sin(half) / vnorm;
     step = Quat<Scalar>(std::cos(half), s * d.x(), s * d.y(), s * d.z());
   }

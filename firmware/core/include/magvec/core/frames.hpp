@@ -139,12 +139,84 @@ Mat3<Scalar> skew(const Vec3<Scalar>& v) noexcept {
   return m;
 }
 
-// Active rotation matrix of a rotation vector v = a k (Rodrigues): Exp(a [k x]).
+// Small rotations without the library's trigonometry (docs/equations.md E-Att-2): the
+// rotations between INS epochs, across a time offset and of the misalignment's error state are a
+// few milliradians, where sinf, cosf and atan2f cost ~100 instructions each on the M4F and these
+// polynomials a few. Below a = 0.2 rad the Taylor polynomials to a^10 leave out terms below
+// a^12 / 12! = 1e-17: they are exact to double rounding. Larger angles go to the library.
+constexpr double kSmallRotationSq = 0.04;  // a^2 below which the polynomials are taken
+template <typename Scalar>
+struct RotationCoefficients {
+  Scalar cos;   // cos a
+  Scalar sinc;  // sin(a) / a
+  Scalar vers;  // (1 - cos a) / a^2
+};
+// Above the threshold: the library (kept out of line, so that the polynomials inline).
+template <typename Scalar>
+RotationCoefficients<Scalar> rotation_coefficients_library(Scalar a2) noexcept {
+  const Scalar a = std::sqrt(a2);
+  const Scalar cos_a = std::cos(a);
+  return {cos_a, std::sin(a) / a, (Scalar(1) - cos_a) / a2};
+}
+// From a^2 (no square root on the small-angle side).
+template <typename Scalar>
+inline RotationCoefficients<Scalar> rotation_coefficients(Scalar a2) noexcept {
+  if (!(a2 < Scalar(kSmallRotationSq))) return rotation_coefficients_library(a2);
+  // Horner forms: each term over the previous one is -a^2 / ((2k + 1)(2k + 2)) and so on.
+  const Scalar x = a2;
+  const Scalar sinc =
+      Scalar(1) -
+      x * Scalar(1.0 / 6) *
+          (Scalar(1) - x * Scalar(1.0 / 20) *
+                           (Scalar(1) - x * Scalar(1.0 / 42) *
+                                            (Scalar(1) - x * Scalar(1.0 / 72) *
+                                                             (Scalar(1) - x * Scalar(1.0 / 110)))));
+  const Scalar vers =
+      Scalar(0.5) *
+      (Scalar(1) -
+       x * Scalar(1.0 / 12) *
+           (Scalar(1) -
+            x * Scalar(1.0 / 30) *
+                (Scalar(1) -
+                 x * Scalar(1.0 / 56) *
+                     (Scalar(1) - x * Scalar(1.0 / 90) * (Scalar(1) - x * Scalar(1.0 / 132))))));
+  return {Scalar(1) - x * vers, sinc, vers};
+}
+// atan(t) / t from t^2 for t^2 < kSmallAtanSq (t < 0.05: the first term left out, t^12 / 13, is
+// below 2e-17); callers take std::atan2 above.
+constexpr double kSmallAtanSq = 0.0025;
+template <typename Scalar>
+Scalar atan_over_t(Scalar t2) noexcept {
+  return Scalar(1) -
+         t2 * (Scalar(1.0 / 3) -
+               t2 * (Scalar(0.2) -
+                     t2 * (Scalar(1.0 / 7) - t2 * (Scalar(1.0 / 9) - t2 * Scalar(1.0 / 11)))));
+}
+
+// Active rotation matrix of a rotation vector v = a k (Rodrigues): Exp(a [k x]) =
+// cos a I + sinc(a) [v x] + vers(a) v v^T.
 template <typename Scalar>
 Mat3<Scalar> exp_so3(const Vec3<Scalar>& v) noexcept {
-  const Scalar a = v.norm();
-  if (!(a > Scalar(0))) return Mat3<Scalar>::Identity();
-  return Eigen::AngleAxis<Scalar>(a, v / a).toRotationMatrix();
+  const Scalar a2 = v.squaredNorm();
+  if (!(a2 > Scalar(0))) return Mat3<Scalar>::Identity();
+  const RotationCoefficients<Scalar> c = rotation_coefficients(a2);
+  const Scalar x = v(0), y = v(1), z = v(2);
+  const Scalar bxy = c.vers * x * y, bxz = c.vers * x * z, byz = c.vers * y * z;
+  const Scalar sx = c.sinc * x, sy = c.sinc * y, sz = c.sinc * z;
+  Mat3<Scalar> r;
+  r << c.cos + c.vers * x * x, bxy - sz, bxz + sy,  //
+      bxy + sz, c.cos + c.vers * y * y, byz - sx,   //
+      bxz - sy, byz + sx, c.cos + c.vers * z * z;
+  return r;
+}
+// The same as a unit quaternion: (cos(a/2), sin(a/2) k) = (cos b, sinc(b) v / 2), b = a / 2.
+template <typename Scalar>
+Quat<Scalar> quat_exp(const Vec3<Scalar>& v) noexcept {
+  const Scalar a2 = v.squaredNorm();
+  if (!(a2 > Scalar(0))) return Quat<Scalar>::Identity();
+  const RotationCoefficients<Scalar> c = rotation_coefficients(Scalar(0.25) * a2);
+  const Scalar h = Scalar(0.5) * c.sinc;
+  return Quat<Scalar>(c.cos, h * v(0), h * v(1), h * v(2));
 }
 
 // Rotation rate in n-frame axes from a body rate (gyro): Omega = R_bn^T omega_b (E-TO-1; the vector
@@ -154,19 +226,16 @@ Vec3<Scalar> rate_n_from_body(const Mat3<Scalar>& r_bn, const Vec3<Scalar>& omeg
   return r_bn.transpose() * omega_b;
 }
 // Rotation vector of a quaternion dq = (w, v), Log: v 2 atan(t) / (t |w|) with t = |v| / |w|. Below
-// t = 0.05 (0.1 rad) atan's series to t^6 (next term t^8 / 9: 4e-12 relative) instead of the
-// arctangent and a square root (the vector calibrator takes one per sample).
+// t = 0.05 (0.1 rad) atan's series (atan_over_t) instead of the arctangent and a square root (the
+// vector calibrator takes one per sample).
 template <typename Scalar>
 Vec3<Scalar> rotation_vector(const Quat<Scalar>& dq) noexcept {
   const Scalar w = std::abs(dq.w());
   const Scalar w2 = w * w;
   const Scalar v2 = dq.vec().squaredNorm();
-  if (v2 < Scalar(0.0025) * w2) {
-    const Scalar t2 = v2 / w2;
-    const Scalar series =
-        Scalar(1) - t2 * (Scalar(1) / Scalar(3) - t2 * (Scalar(0.2) - t2 / Scalar(7)));
+  if (v2 < Scalar(kSmallAtanSq) * w2) {
     const Scalar sign = dq.w() < Scalar(0) ? Scalar(-1) : Scalar(1);
-    return dq.vec() * (sign * Scalar(2) * series / w);
+    return dq.vec() * (sign * Scalar(2) * atan_over_t(v2 / w2) / w);
   }
   const Eigen::AngleAxis<Scalar> aa(dq);
   return aa.axis() * aa.angle();

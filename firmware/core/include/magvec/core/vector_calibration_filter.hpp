@@ -341,11 +341,11 @@ class VectorCalibrationFilter {
   static constexpr std::uint32_t kStatsCountCap = 1u << 20;
   // Parts of a linearisation beyond the whitened residual and Jacobian (E-VF-10).
   struct LinExtras {
-    Mat<Scalar, 3, kStates> h;  // unwhitened Jacobian, holds not applied
+    Mat<Scalar, 3, kStates> h;  // unwhitened Jacobian, holds not applied (envelope only)
     Mat3<Scalar> cov;           // residual covariance
     Mat3<Scalar> cov_mag;       // its magnetometer part
     Mat3<Scalar> l;             // Cholesky factor of cov
-    Vec3<Scalar> g;             // predicted field (n frame, normalised)
+    Vec3<Scalar> g;             // predicted field (n frame, normalised; envelope only)
     Vec3<Scalar> h_n;           // the field state it is compared with
   };
 
@@ -375,10 +375,7 @@ class VectorCalibrationFilter {
   StateVec full() const noexcept { return nom_ + x_; }
   Quat<Scalar> rm_current() const noexcept {
     // Rm = Rm_nom Exp(-[phi x]) (E-VF-A): a body-frame small rotation of the frame.
-    const Vec3<Scalar> phi = x_.template segment<3>(kRm0);
-    const Scalar a = phi.norm();
-    Quat<Scalar> q = rm_nom_;
-    if (a > Scalar(0)) q = rm_nom_ * Quat<Scalar>(Eigen::AngleAxis<Scalar>(-a, phi / a));
+    Quat<Scalar> q = rm_nom_ * quat_exp(Vec3<Scalar>(-x_.template segment<3>(kRm0)));
     q.normalize();
     return q;
   }
@@ -867,7 +864,11 @@ class VectorCalibrationFilter {
   // rw and hw both null: only *ex (unwhitened Jacobian, prediction, covariance; no l).
   bool linearise(const Prepared& p, Vec3<Scalar>* rw, Mat<Scalar, 3, kStates>* hw,
                  LinExtras* ex = nullptr) const noexcept {
-    const StateVec xf = lin_at_nominal_ ? nom_ : full();
+    StateVec xf;
+    if (lin_at_nominal_)
+      xf = nom_;
+    else
+      xf = nom_ + x_;
     Mat3<Scalar> wm = Mat3<Scalar>::Zero();
     for (int k = 0; k < kWEntries; ++k)
       wm(kWRow[static_cast<std::size_t>(k)], kWCol[static_cast<std::size_t>(k)]) = xf(kW0 + k);
@@ -897,29 +898,21 @@ class VectorCalibrationFilter {
     h.template block<3, 3>(0, kHn0) = -Mat3<Scalar>::Identity();
     h.col(kDt) = -p.omega.cross(g);
     h.template block<3, 3>(0, kTc0) = -pm * p.dtemp;
+    // The Jacobian and prediction for the output envelope only (rw null); the noise terms of a
+    // live sample need h_n, L and Sigma_m (E-VF-10).
     if (ex != nullptr) {
-      ex->h = h;
-      ex->g = g;
+      if (rw == nullptr) {
+        ex->h = h;
+        ex->g = g;
+      }
       ex->h_n = hn;
     }
     for (int k = 0; k < kStates; ++k)
       if (held_[static_cast<std::size_t>(k)]) h.col(k).setZero();
     // Residual covariance (E-OS-3): magnetometer noise through P, attitude noise across h_n.
-    const Scalar sm = noise_factor_ * std::max(cfg_.mag_noise_nT / scale_or_one(),
-                                               Scalar(16) * std::numeric_limits<Scalar>::epsilon());
-    const Scalar sa = noise_factor_ * cfg_.attitude_noise_rad;
-    Mat3<Scalar> c;
-    if (cfg_.attitude_model == AttitudeNoiseModel::kLiEuler) {
-      const Scalar ax = p.r(1, 1), ay = -p.r(1, 0);
-      const Scalar al = std::sqrt(ax * ax + ay * ay);
-      const Vec3<Scalar> a1 =
-          al > Scalar(0) ? Vec3<Scalar>(ax / al, ay / al, Scalar(0)) : Vec3<Scalar>::UnitX();
-      c.col(0) = Vec3<Scalar>::UnitZ().cross(hn);
-      c.col(1) = a1.cross(hn);
-      c.col(2) = Vec3<Scalar>(p.r.row(1).transpose()).cross(hn);
-    } else {
-      c = skew(hn).transpose();
-    }
+    const Scalar sm = mag_sigma();
+    const Scalar sa = attitude_sigma();
+    const Mat3<Scalar> c = attitude_noise_columns(p.r, hn);
     const Mat3<Scalar> cov_mag = sm * sm * (pm * pm.transpose());
     const Mat3<Scalar> cov = cov_mag + sa * sa * (c * c.transpose());
     if (ex != nullptr) {
@@ -947,6 +940,31 @@ class VectorCalibrationFilter {
     *hw = lower_solve(l, h);
     if (ex != nullptr) ex->l = l;
     return all_finite(*rw) && all_finite(*hw);
+  }
+
+  // The residual's noise figures in normalised units (E-OS-3).
+  Scalar mag_sigma() const noexcept {
+    return noise_factor_ * std::max(cfg_.mag_noise_nT / scale_or_one(),
+                                    Scalar(16) * std::numeric_limits<Scalar>::epsilon());
+  }
+  Scalar attitude_sigma() const noexcept { return noise_factor_ * cfg_.attitude_noise_rad; }
+  // C with the attitude part of the residual covariance sa^2 C C^T at R_bn = r (E-OS-3): the
+  // attitude's small rotations turn h_n about the model's axes.
+  Mat3<Scalar> attitude_noise_columns(const Mat3<Scalar>& r,
+                                      const Vec3<Scalar>& hn) const noexcept {
+    Mat3<Scalar> c;
+    if (cfg_.attitude_model == AttitudeNoiseModel::kLiEuler) {
+      const Scalar ax = r(1, 1), ay = -r(1, 0);
+      const Scalar al = std::sqrt(ax * ax + ay * ay);
+      const Vec3<Scalar> a1 =
+          al > Scalar(0) ? Vec3<Scalar>(ax / al, ay / al, Scalar(0)) : Vec3<Scalar>::UnitX();
+      c.col(0) = Vec3<Scalar>::UnitZ().cross(hn);
+      c.col(1) = a1.cross(hn);
+      c.col(2) = Vec3<Scalar>(r.row(1).transpose()).cross(hn);
+    } else {
+      c = skew(hn).transpose();
+    }
+    return c;
   }
 
   Scalar reference_sigma() const noexcept {
@@ -1649,47 +1667,104 @@ VfOutputUncertainty<Scalar> VectorCalibrationFilter<
   const Mat3<Scalar> rm = rm_current().toRotationMatrix();
   const Vec3<Scalar> h_n = xf.template segment<3>(kHn0);
   const Scalar dtemp = delta_t(kNaN);
-  const Vec3<Scalar> o_t = xf.template segment<3>(kO0) + xf.template segment<3>(kTc0) * dtemp;
-  // The envelope (output_envelope.hpp, E-VF-10) of the tilts seen since the start.
+  const Scalar hn2 = h_n.squaredNorm();
+  if (!(hn2 > Scalar(0))) return o;
+  const Vec3<Scalar> g_dir = h_n / std::sqrt(hn2);
+  // The envelope (output_envelope.hpp, E-VF-10) of the tilts seen since the start, in closed form
+  // (docs/equations.md E-VF-10): at an envelope attitude R, with no rate and the reading the
+  // current model predicts there, E-VF-3's Jacobian is H_c = M B(b), M = R^T Rm^T orthogonal and
+  // b = R h_n, the field in INS axes; the predicted field is g = h_n. B's columns are constant
+  // (o: -W; c_T: -dT W) or linear in b (W_k: e_r a_c^T b, a_c^T row c of A = W^-1 Rm; phi_m:
+  // Rm [e_m x] b), so G_v = sum H_c^T H_c = sum B^T B needs only n, sum b and sum b b^T, and
+  // H_c^T g / |g| = B^T Rm b / |h_n|.
+  const Mat3<Scalar> a = w_inv * rm;
+  std::array<Mat3<Scalar>, kCalStates> lin{};  // column p = lin[p] b (linear columns)
+  std::array<Vec3<Scalar>, kCalStates> cst{};  // column p = cst[p] (constant columns)
+  std::array<bool, kCalStates> is_lin{};
+  for (int k = 0; k < kWEntries; ++k) {
+    const auto kk = static_cast<std::size_t>(k);
+    lin[kk].setZero();
+    lin[kk].row(kWRow[kk]) = a.row(kWCol[kk]);
+    is_lin[kk] = true;
+  }
+  for (int m = 0; m < 3; ++m) {
+    const auto mm = static_cast<std::size_t>(m);
+    cst[static_cast<std::size_t>(kWEntries) + mm] = -wm.col(m);  // o
+    lin[static_cast<std::size_t>(kWEntries) + 3 + mm] =
+        rm * skew(Vec3<Scalar>(Vec3<Scalar>::Unit(m)));  // phi
+    is_lin[static_cast<std::size_t>(kWEntries) + 3 + mm] = true;
+    cst[static_cast<std::size_t>(kWEntries) + 6 + mm] = -dtemp * wm.col(m);  // c_T
+  }
+  static_assert(kWEntries + 9 == kCalStates);
+  // Noise at the envelope (E-OS-3): tr(Sigma_m) = sm^2 |W|_F^2 (M orthogonal) at every attitude;
+  // along g the attitude part vanishes (it turns h_n) and the magnetometer's is sm^2 |W^T Rm b|^2
+  // / |h_n|^2.
+  const Scalar sm = mag_sigma();
+  const Scalar sa = attitude_sigma();
+  const Scalar tr_mag = sm * sm * wm.squaredNorm();
   EnvelopeGram<Scalar, kCalStates> gram;
+  Vec3<Scalar> s1 = Vec3<Scalar>::Zero();
+  Mat3<Scalar> m2 = Mat3<Scalar>::Zero();
   Scalar nv{0}, ni{0};
   for_each_envelope_attitude(tilts_, [&](const Mat3<Scalar>& r) {
-    // The raw reading the current model predicts there (normalised), no rate: the output's
-    // dependence on the calibration states only.
-    Prepared p;
-    p.m = w_inv * (rm * (r * h_n)) + o_t;
-    p.r = r;
-    p.omega.setZero();
-    p.f = kNaN;
-    p.dtemp = dtemp;
-    LinExtras ex;
-    if (!linearise(p, nullptr, nullptr, &ex)) return;
-    Mat<Scalar, 3, kCalStates> hc;
-    for (int i = 0; i < kCalStates; ++i)
-      hc.col(i) = ex.h.col(kCalIndex[static_cast<std::size_t>(i)]);
-    const Scalar gn = ex.g.norm();
-    if (!(gn > Scalar(0))) return;
-    const Vec3<Scalar> g_dir = ex.g / gn;
-    gram.add(hc, g_dir);
-    nv += ex.cov.trace();
-    ni += g_dir.dot(ex.cov * g_dir);
+    const Vec3<Scalar> b = r * h_n;
+    const Vec3<Scalar> rb = rm * (r * g_dir);  // M^T g / |g|
+    s1 += b;
+    m2 += b * b.transpose();
+    Vec<Scalar, kCalStates> hi;
+    for (std::size_t p = 0; p < static_cast<std::size_t>(kCalStates); ++p)
+      hi(static_cast<Eigen::Index>(p)) = is_lin[p] ? rb.dot(lin[p] * b) : rb.dot(cst[p]);
+    Scalar* w = gram.gi.data();
+    for (int c = 0; c < kCalStates; ++c)
+      for (int q = 0; q <= c; ++q)
+        w[kCalStates * c + q] += hi(q) * hi(c);
+    ++gram.n;
+    nv += tr_mag + sa * sa * attitude_noise_columns(r, h_n).squaredNorm();
+    ni += sm * sm * (wm.transpose() * rb).squaredNorm();
   });
-  gram.finish();
+  const int na = gram.n;
+  if (na == 0) return o;
+  // G_v from the moments: constant-constant n c_p.c_q, constant-linear c_p.(L_q sum b),
+  // linear-linear tr(L_p^T L_q sum b b^T).
+  std::array<Vec3<Scalar>, kCalStates> ls1{};
+  std::array<Mat3<Scalar>, kCalStates> lm2{};
+  for (std::size_t p = 0; p < static_cast<std::size_t>(kCalStates); ++p) {
+    if (!is_lin[p]) continue;
+    ls1[p] = lin[p] * s1;
+    lm2[p] = lin[p] * m2;
+  }
+  for (std::size_t c = 0; c < static_cast<std::size_t>(kCalStates); ++c) {
+    for (std::size_t q = 0; q <= c; ++q) {
+      Scalar v;
+      if (is_lin[q] && is_lin[c])
+        v = lin[q].cwiseProduct(lm2[c]).sum();
+      else if (is_lin[q])
+        v = cst[c].dot(ls1[q]);
+      else if (is_lin[c])
+        v = cst[q].dot(ls1[c]);
+      else
+        v = static_cast<Scalar>(na) * cst[q].dot(cst[c]);
+      gram.gv(static_cast<Eigen::Index>(q), static_cast<Eigen::Index>(c)) = v;
+    }
+  }
   const int n = gram.n;
   const CalMat& gv = gram.gv;
   const CalMat& gi = gram.gi;
-  if (n == 0) return o;
   o.attitudes = static_cast<std::uint32_t>(n);
-  // tr(P_cc G) = sum_k D_k u_k^T G u_k over the columns u_k of U restricted to the calibration
-  // states (P = U D U^T, normalised units).
+  // tr(P_cc G) = sum_ij P_cc(i, j) G(i, j) over the upper triangles (the only parts filled),
+  // P_cc = U_c D U_c^T from the calibration rows of U (upper triangular: U(c, k) = 0 for k < c).
   Scalar tv{0}, ti{0};
-  for (int k = 0; k < kStates; ++k) {
-    Vec<Scalar, kCalStates> uk;
-    for (int i = 0; i < kCalStates; ++i)
-      uk(i) = u_(kCalIndex[static_cast<std::size_t>(i)], k);
-    if (uk.squaredNorm() == Scalar(0)) continue;
-    tv += d_(k) * uk.dot(gv * uk);
-    ti += d_(k) * uk.dot(gi * uk);
+  for (int j = 0; j < kCalStates; ++j) {
+    const int cj = kCalIndex[static_cast<std::size_t>(j)];
+    for (int i = 0; i <= j; ++i) {
+      const int ci = kCalIndex[static_cast<std::size_t>(i)];
+      Scalar pij{0};
+      for (int k = std::max(ci, cj); k < kStates; ++k)
+        pij += u_(ci, k) * d_(k) * u_(cj, k);
+      const Scalar wgt = i == j ? Scalar(1) : Scalar(2);
+      tv += wgt * pij * gv(i, j);
+      ti += wgt * pij * gi(i, j);
+    }
   }
   const Scalar sc = scale_or_one();
   const Scalar inv_n = Scalar(1) / static_cast<Scalar>(n);

@@ -319,8 +319,8 @@ class VectorCalibrationFilter {
   // Covariance in interface units (W 1, o nT, Rm rad about body axes, h_n nT, dt s, c nT/degC).
   StateMat covariance() const noexcept;
   VfSigmas<Scalar> sigmas(Scalar t_degC = std::numeric_limits<Scalar>::quiet_NaN()) const noexcept;
-  // E-VF-10. output_uncertainty() linearises at 48 attitudes and takes a trace over the U-D
-  // factors (about 60 000 flops): poll it every few dozen samples, not per sample.
+  // E-VF-10. output_uncertainty() sums over 48 envelope attitudes in closed form and takes a trace
+  // over the U-D factors (about 20 000 instructions on the M4F): poll it, not per sample.
   VfOutputUncertainty<Scalar> output_uncertainty() const noexcept;
   VfNoiseEstimate<Scalar> innovation_noise() const noexcept;
   // Live samples before innovation_noise() is valid.
@@ -339,14 +339,12 @@ class VectorCalibrationFilter {
   // Running means of E-VF-10 stop growing their count here: past it they are moving averages
   // (float32 sums of 2^24 terms would stop moving).
   static constexpr std::uint32_t kStatsCountCap = 1u << 20;
-  // Parts of a linearisation beyond the whitened residual and Jacobian (E-VF-10).
+  // Parts of a linearisation beyond the whitened residual and Jacobian: the noise terms of a live
+  // sample (E-VF-10).
   struct LinExtras {
-    Mat<Scalar, 3, kStates> h;  // unwhitened Jacobian, holds not applied (envelope only)
-    Mat3<Scalar> cov;           // residual covariance
-    Mat3<Scalar> cov_mag;       // its magnetometer part
-    Mat3<Scalar> l;             // Cholesky factor of cov
-    Vec3<Scalar> g;             // predicted field (n frame, normalised; envelope only)
-    Vec3<Scalar> h_n;           // the field state it is compared with
+    Mat3<Scalar> cov_mag;  // the residual covariance's magnetometer part
+    Mat3<Scalar> l;        // Cholesky factor of the residual covariance
+    Vec3<Scalar> h_n;      // the field state it is compared with
   };
 
   // A sample in the filter's units.
@@ -861,7 +859,6 @@ class VectorCalibrationFilter {
 
   // ---- measurement model ---------------------------------------------------------------------
   // Whitened residual and Jacobian of a vector sample at the current estimate (E-VF-2, E-VF-3).
-  // rw and hw both null: only *ex (unwhitened Jacobian, prediction, covariance; no l).
   bool linearise(const Prepared& p, Vec3<Scalar>* rw, Mat<Scalar, 3, kStates>* hw,
                  LinExtras* ex = nullptr) const noexcept {
     StateVec xf;
@@ -898,15 +895,7 @@ class VectorCalibrationFilter {
     h.template block<3, 3>(0, kHn0) = -Mat3<Scalar>::Identity();
     h.col(kDt) = -p.omega.cross(g);
     h.template block<3, 3>(0, kTc0) = -pm * p.dtemp;
-    // The Jacobian and prediction for the output envelope only (rw null); the noise terms of a
-    // live sample need h_n, L and Sigma_m (E-VF-10).
-    if (ex != nullptr) {
-      if (rw == nullptr) {
-        ex->h = h;
-        ex->g = g;
-      }
-      ex->h_n = hn;
-    }
+    if (ex != nullptr) ex->h_n = hn;
     for (int k = 0; k < kStates; ++k)
       if (held_[static_cast<std::size_t>(k)]) h.col(k).setZero();
     // Residual covariance (E-OS-3): magnetometer noise through P, attitude noise across h_n.
@@ -915,12 +904,7 @@ class VectorCalibrationFilter {
     const Mat3<Scalar> c = attitude_noise_columns(p.r, hn);
     const Mat3<Scalar> cov_mag = sm * sm * (pm * pm.transpose());
     const Mat3<Scalar> cov = cov_mag + sa * sa * (c * c.transpose());
-    if (ex != nullptr) {
-      ex->cov = cov;
-      ex->cov_mag = cov_mag;
-    }
-    // Without rw (the output envelope, E-VF-10) nothing is whitened.
-    if (rw == nullptr) return all_finite(cov);
+    if (ex != nullptr) ex->cov_mag = cov_mag;
     // Cholesky L L^T of the 3x3 covariance and forward substitution (no level-3 solver).
     Mat3<Scalar> l = Mat3<Scalar>::Zero();
     for (int j = 0; j < 3; ++j) {

@@ -52,7 +52,8 @@
 // scale through a near-constant vertical field): a 90-s survey manoeuvre stayed at 1.6x its limit
 // while the output error on the survey lines was at the floor. parameter_ratio() reports it.
 // progress() is the fulfilment of the readiness and noise ratios (and the start-up collection
-// before). The envelope costs ~60 000 flops: it is refreshed every refresh_every samples.
+// before). The envelope costs ~20 000 instructions on the M4F: it is refreshed every refresh_every
+// samples.
 //
 // Noise refinement (E-VF-10): once the filter runs, its live innovations estimate both noise
 // figures again (covariance matching), from thousands of samples instead of the start-up set's

@@ -2,9 +2,12 @@
 
 #include <gtest/gtest.h>
 
+#include <array>
+#include <cmath>
 #include <cstdio>
 #include <memory>
 #include <random>
+#include <utility>
 #include <vector>
 
 #include "li_setup.hpp"
@@ -509,6 +512,94 @@ void temperature_ramp_recovers_the_coefficients(int fold) {
     }
   }
 }
+// E-VF-10's output envelope against the same figure formed independently: the outputs (|h| and
+// E/N/U) of the filter's model at each envelope attitude, for the reading that model predicts
+// there, differentiated numerically in the 15 calibration parameters (W's entries, o, Rm's error
+// as Rm (I - [phi x]) per E-VF-3, c_T), with the filter's covariance: (1/n) sum J P J^T. A run with
+// a temperature ramp, so that the c_T columns (dT times o's) count.
+void output_uncertainty_is_the_envelopes_linearised_error(int fold) {
+  Truth tr;
+  tr.tc = {0.3, -0.3, 0.3};
+  SimOptions o = noisy_manoeuvre(20);
+  o.with_temperature = true;
+  o.temp_start_degC = 15;
+  o.temp_end_degC = 35;
+  std::mt19937_64 rng(31);
+  const auto data = simulate_manoeuvre(tr, o, rng);
+  VfConfig<double> cfg = fold_cfg<double>(fold);
+  cfg.temperature_ref_degC = tr.t0_degC;
+  auto f = run<double>(data, cfg);
+  ASSERT_TRUE(f->initialised());
+  ASSERT_EQ(f->counters().resets, 0U);
+  const VfOutputUncertainty<double> ou = f->output_uncertainty();
+  ASSERT_EQ(ou.attitudes, static_cast<std::uint32_t>(kEnvelopeAttitudes));
+  // The filter's tilt moments: every sample it was given (no reset).
+  TiltMoments<double> tilts;
+  for (const SimSample& s : data)
+    tilts.add(s.in.r_bn);
+  const SensorModel<double> m = f->model();
+  const Mat3<double> w0 = f->w();
+  const Mat3<double> rm0 = f->rm().toRotationMatrix();
+  const Vec3<double> o0 = f->offset_ref_nT();
+  const Vec3<double> c0 = f->temperature_coefficients_nT_per_degC();
+  const double dt = data.back().in.temperature_degC - f->temperature_ref_degC();
+  const Vec3<double> h_n = f->h_n_nT();
+  // The calibration parameters' covariance (state order W, o, Rm, c_T).
+  const std::array<int, 15> cal = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 16, 17, 18};
+  const auto p_full = f->covariance();
+  Mat<double, 15, 15> p;
+  for (int i = 0; i < 15; ++i)
+    for (int j = 0; j < 15; ++j)
+      p(i, j) = p_full(cal[static_cast<std::size_t>(i)], cal[static_cast<std::size_t>(j)]);
+  const std::array<std::pair<int, int>, 6> w_entry = {
+      {{0, 0}, {1, 0}, {1, 1}, {1, 2}, {2, 0}, {2, 2}}};
+  double sum_i = 0, sum_v = 0;
+  int n = 0;
+  for_each_envelope_attitude(tilts, [&](const Mat3<double>& r) {
+    const Vec3<double> reading = m.predict_raw(r, h_n);
+    // Outputs (|h|, E, N, U) at parameters moved by d along parameter k.
+    auto outputs = [&](int k, double d) {
+      Mat3<double> w = w0;
+      Vec3<double> off = o0, c = c0;
+      Mat3<double> rm = rm0;
+      if (k < 6)
+        w(w_entry[static_cast<std::size_t>(k)].first,
+          w_entry[static_cast<std::size_t>(k)].second) += d;
+      else if (k < 9)
+        off(k - 6) += d;
+      else if (k < 12)
+        rm = rm0 * exp_so3(Vec3<double>(-d * Vec3<double>::Unit(k - 9)));
+      else
+        c(k - 12) += d;
+      const Vec3<double> hs = w * (reading - off - c * dt);
+      const Vec3<double> enu = r.transpose() * rm.transpose() * hs;
+      return Vec<double, 4>(hs.norm(), enu(0), enu(1), enu(2));
+    };
+    Mat<double, 4, 15> j;
+    for (int k = 0; k < 15; ++k) {
+      const double step = k < 6 ? 1e-6 : (k < 9 ? 1e-3 : (k < 12 ? 1e-7 : 1e-3));
+      j.col(k) = (outputs(k, step) - outputs(k, -step)) / (2 * step);
+    }
+    sum_i += (j.row(0) * p * j.row(0).transpose())(0, 0);
+    const Mat<double, 3, 15> jv = j.bottomRows<3>();
+    sum_v += (jv * p * jv.transpose()).trace();
+    ++n;
+  });
+  ASSERT_EQ(n, kEnvelopeAttitudes);
+  const double sigma_i = std::sqrt(sum_i / n);
+  const double sigma_v = std::sqrt(sum_v / (3 * n));
+  std::printf("fold %d: envelope |h| %.6f nT (independent %.6f), E/N/U %.6f nT (%.6f)\n", fold,
+              ou.intensity_nT, sigma_i, ou.vector_nT, sigma_v);
+  EXPECT_NEAR(ou.intensity_nT, sigma_i, 1e-4 * sigma_i);
+  EXPECT_NEAR(ou.vector_nT, sigma_v, 1e-4 * sigma_v);
+}
+TEST(VectorCalibrationFilter, OutputUncertaintyIsTheEnvelopesLinearisedError) {
+  output_uncertainty_is_the_envelopes_linearised_error(1);
+}
+TEST(VectorCalibrationFilter, OutputUncertaintyIsTheEnvelopesLinearisedErrorInFolds) {
+  output_uncertainty_is_the_envelopes_linearised_error(kMcuFold);
+}
+
 TEST(VectorCalibrationFilter, TemperatureRampRecoversTheCoefficients) {
   temperature_ramp_recovers_the_coefficients(1);
 }
@@ -641,6 +732,53 @@ TEST(VectorCalibrationFilter, GatesSpikes) {
 }
 TEST(VectorCalibrationFilter, GatesSpikesInFolds) {
   gates_spikes(kMcuFold);
+}
+
+// A finite reading so large that the whitened residual and rows overflow float32 (3e38 nT): the
+// sample is refused (gated, or a restart with the non-finite reason; in folds the rows are checked
+// in the block's sums at the fold), and whatever happens no non-finite value reaches the outputs.
+void overflowing_reading_never_corrupts_the_state(int fold) {
+  const Truth tr;
+  const SimOptions o = noisy_manoeuvre(20);
+  std::mt19937_64 rng(73);
+  const auto data = simulate_manoeuvre(tr, o, rng);
+  auto f = std::make_unique<Filter<float>>(fold_cfg<float>(fold));
+  const std::size_t bad_at = data.size() / 2;
+  VfStatus bad_status = VfStatus::kAccepted;
+  for (std::size_t i = 0; i < data.size(); ++i) {
+    VfSample<float> in = cast_sample<float>(data[i].in);
+    if (i == bad_at) {
+      ASSERT_TRUE(f->initialised());
+      in.m_nT = Vec3<float>(3e38f, -3e38f, 3e38f);
+      ASSERT_TRUE(in.m_nT.allFinite());
+    }
+    const VfStatus st = f->update(in);
+    if (i == bad_at) bad_status = st;
+    if (i >= bad_at && f->initialised()) {
+      ASSERT_TRUE(f->w().allFinite()) << i;
+      ASSERT_TRUE(f->offset_nT().allFinite()) << i;
+      ASSERT_TRUE(f->h_n_nT().allFinite()) << i;
+      ASSERT_TRUE(f->covariance().allFinite()) << i;
+    }
+  }
+  (void)f->flush();
+  std::printf("fold %d: the 3e38 nT reading gave status %d (kGated %d, kReset %d), resets %u\n",
+              fold, static_cast<int>(bad_status), static_cast<int>(VfStatus::kGated),
+              static_cast<int>(VfStatus::kReset), static_cast<unsigned>(f->counters().resets));
+  EXPECT_TRUE(bad_status == VfStatus::kGated || bad_status == VfStatus::kReset)
+      << static_cast<int>(bad_status);
+  if (f->counters().resets > 0) {
+    EXPECT_EQ(f->last_reset_reason(), VfResetReason::kNonFiniteState);
+  }
+  // It runs again by the end (a restart collects and starts from data), at the truth.
+  ASSERT_TRUE(f->initialised());
+  EXPECT_LT((f->w().cast<double>() - from_li(tr.li).w).cwiseAbs().maxCoeff(), 1e-3);
+}
+TEST(VectorCalibrationFilter, OverflowingReadingNeverCorruptsTheState) {
+  overflowing_reading_never_corrupts_the_state(1);
+}
+TEST(VectorCalibrationFilter, OverflowingReadingNeverCorruptsTheStateInFolds) {
+  overflowing_reading_never_corrupts_the_state(kMcuFold);
 }
 
 // ---- 4. time offset -------------------------------------------------------------------------

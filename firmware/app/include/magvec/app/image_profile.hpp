@@ -84,7 +84,7 @@ core::VectorCalibratorConfig<Scalar> vector_calibrator_config(
   // 32 would halve that share, but the filter then tracked a 300 nT offset drift too late and its
   // float32 moved more than 0.1 sigma from double (vector_calibration_filter_test).
   c.filter.fold_samples = 16;
-  // The output envelope's readiness check (~150 000 instructions before its closed form, ~20 000
+  // The output envelope's readiness check (~150 000 instructions before its closed form, ~46 000
   // since, E-VF-10) every 256 samples, 5.1 s at
   // 50 Hz, instead of every 64: 1 800 instructions per sample less. Readiness waits on the noise
   // figures' 5 % rule here (noise samples every 2nd, E-VF-B), which the calibrator checks at every

@@ -203,21 +203,21 @@ class AttitudeBuffer {
       return r;
     }
     const std::size_t hi = lower_bound(t_us);  // time_at(hi) >= t_us, hi >= 1 here
-    if (time_at(hi) == t_us) {
+    const Entry& e1 = entries_[phys(hi)];
+    if (e1.t_us == t_us) {
       r.status = AttitudeQueryStatus::kInterpolated;
-      r.q_nb = quat_at(hi);
+      r.q_nb = e1.q;
       return r;
     }
-    const std::uint64_t t0 = time_at(hi - 1);
-    const std::uint64_t t1 = time_at(hi);
-    r.gap_us = t1 - t0;
+    const Entry& e0 = entries_[phys(hi - 1)];
+    r.gap_us = e1.t_us - e0.t_us;
     if (r.gap_us > config_.max_gap_us) {
       r.status = AttitudeQueryStatus::kGap;
       return r;
     }
-    const Scalar f = fraction(t_us - t0, r.gap_us);
+    const Scalar f = fraction(t_us - e0.t_us, r.gap_us);
     r.status = AttitudeQueryStatus::kInterpolated;
-    r.q_nb = slerp_unit(quat_at(hi - 1), quat_at(hi), f);
+    r.q_nb = slerp_unit(e0.q, e1.q, f);
     return r;
   }
 
@@ -264,8 +264,10 @@ class AttitudeBuffer {
   // then a binary search of the rest (every entry from hi on is at or after t_us).
   std::size_t lower_bound(std::uint64_t t_us) const noexcept {
     std::size_t hi = size_;
+    std::size_t p = phys(size_);  // the slot after the newest; stepped back with hi
     for (int k = 0; k < 4 && hi > 0; ++k) {
-      if (time_at(hi - 1) < t_us) return hi;
+      p = (p + Capacity - 1) % Capacity;
+      if (entries_[p].t_us < t_us) return hi;
       --hi;
     }
     std::size_t lo = 0;

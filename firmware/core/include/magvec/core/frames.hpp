@@ -6,6 +6,7 @@
 #pragma once
 
 #include <cmath>
+#include <type_traits>
 
 #include "magvec/core/types.hpp"
 
@@ -143,7 +144,8 @@ Mat3<Scalar> skew(const Vec3<Scalar>& v) noexcept {
 // rotations between INS epochs, across a time offset and of the misalignment's error state are a
 // few milliradians, where sinf, cosf and atan2f cost ~100 instructions each on the M4F and these
 // polynomials a few. Below a = 0.2 rad the Taylor polynomials to a^10 leave out terms below
-// a^12 / 12! = 1e-17: they are exact to double rounding. Larger angles go to the library.
+// a^12 / 12! = 1e-17: they are exact to double rounding (in float, to a^6: below 1e-11). Larger
+// angles go to the library.
 constexpr double kSmallRotationSq = 0.04;  // a^2 below which the polynomials are taken
 template <typename Scalar>
 struct RotationCoefficients {
@@ -162,35 +164,53 @@ RotationCoefficients<Scalar> rotation_coefficients_library(Scalar a2) noexcept {
 template <typename Scalar>
 inline RotationCoefficients<Scalar> rotation_coefficients(Scalar a2) noexcept {
   if (!(a2 < Scalar(kSmallRotationSq))) return rotation_coefficients_library(a2);
-  // Horner forms: each term over the previous one is -a^2 / ((2k + 1)(2k + 2)) and so on.
+  // Horner forms: each term over the previous one is -a^2 / ((2k + 1)(2k + 2)) and so on. In
+  // float the series stop at a^6: the first term left out, a^8 / 9!, is below 1e-11.
   const Scalar x = a2;
-  const Scalar sinc =
-      Scalar(1) -
-      x * Scalar(1.0 / 6) *
-          (Scalar(1) - x * Scalar(1.0 / 20) *
-                           (Scalar(1) - x * Scalar(1.0 / 42) *
-                                            (Scalar(1) - x * Scalar(1.0 / 72) *
-                                                             (Scalar(1) - x * Scalar(1.0 / 110)))));
-  const Scalar vers =
-      Scalar(0.5) *
-      (Scalar(1) -
-       x * Scalar(1.0 / 12) *
-           (Scalar(1) -
-            x * Scalar(1.0 / 30) *
-                (Scalar(1) -
-                 x * Scalar(1.0 / 56) *
-                     (Scalar(1) - x * Scalar(1.0 / 90) * (Scalar(1) - x * Scalar(1.0 / 132))))));
-  return {Scalar(1) - x * vers, sinc, vers};
+  if constexpr (std::is_same_v<Scalar, float>) {
+    const Scalar sinc =
+        Scalar(1) - x * Scalar(1.0 / 6) *
+                        (Scalar(1) - x * Scalar(1.0 / 20) * (Scalar(1) - x * Scalar(1.0 / 42)));
+    const Scalar vers =
+        Scalar(0.5) *
+        (Scalar(1) - x * Scalar(1.0 / 12) *
+                         (Scalar(1) - x * Scalar(1.0 / 30) * (Scalar(1) - x * Scalar(1.0 / 56))));
+    return {Scalar(1) - x * vers, sinc, vers};
+  } else {
+    const Scalar sinc =
+        Scalar(1) -
+        x * Scalar(1.0 / 6) *
+            (Scalar(1) -
+             x * Scalar(1.0 / 20) *
+                 (Scalar(1) -
+                  x * Scalar(1.0 / 42) *
+                      (Scalar(1) - x * Scalar(1.0 / 72) * (Scalar(1) - x * Scalar(1.0 / 110)))));
+    const Scalar vers =
+        Scalar(0.5) *
+        (Scalar(1) -
+         x * Scalar(1.0 / 12) *
+             (Scalar(1) -
+              x * Scalar(1.0 / 30) *
+                  (Scalar(1) -
+                   x * Scalar(1.0 / 56) *
+                       (Scalar(1) - x * Scalar(1.0 / 90) * (Scalar(1) - x * Scalar(1.0 / 132))))));
+    return {Scalar(1) - x * vers, sinc, vers};
+  }
 }
 // atan(t) / t from t^2 for t^2 < kSmallAtanSq (t < 0.05: the first term left out, t^12 / 13, is
-// below 2e-17); callers take std::atan2 above.
+// below 2e-17; in float the series stops at t^6, leaving out t^8 / 9 < 5e-12); callers take
+// std::atan2 above.
 constexpr double kSmallAtanSq = 0.0025;
 template <typename Scalar>
 Scalar atan_over_t(Scalar t2) noexcept {
-  return Scalar(1) -
-         t2 * (Scalar(1.0 / 3) -
-               t2 * (Scalar(0.2) -
-                     t2 * (Scalar(1.0 / 7) - t2 * (Scalar(1.0 / 9) - t2 * Scalar(1.0 / 11)))));
+  if constexpr (std::is_same_v<Scalar, float>) {
+    return Scalar(1) - t2 * (Scalar(1.0 / 3) - t2 * (Scalar(0.2) - t2 * Scalar(1.0 / 7)));
+  } else {
+    return Scalar(1) -
+           t2 * (Scalar(1.0 / 3) -
+                 t2 * (Scalar(0.2) -
+                       t2 * (Scalar(1.0 / 7) - t2 * (Scalar(1.0 / 9) - t2 * Scalar(1.0 / 11)))));
+  }
 }
 
 // Active rotation matrix of a rotation vector v = a k (Rodrigues): Exp(a [k x]) =

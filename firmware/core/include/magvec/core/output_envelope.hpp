@@ -90,10 +90,20 @@ bool for_each_envelope_attitude(const TiltMoments<Scalar>& m, F&& f) noexcept {
     } else if (u(2) < Scalar(0)) {
       t = exp_so3(Vec3<Scalar>(kPi<Scalar>, Scalar(0), Scalar(0)));
     }
-    for (int k = 0; k < kEnvelopeHeadings; ++k) {
-      const Scalar psi =
-          Scalar(2) * kPi<Scalar> * static_cast<Scalar>(k) / static_cast<Scalar>(kEnvelopeHeadings);
-      f(Mat3<Scalar>(t * exp_so3(Vec3<Scalar>(Scalar(0), Scalar(0), psi))));
+    // R_bn = T Rz(psi_k): Rz mixes T's first two columns by cos and sin of the eight headings,
+    // 45 degrees apart (a table: no sin, cos or 3x3 product per attitude).
+    static_assert(kEnvelopeHeadings == 8);
+    constexpr double kH = 0.70710678118654752440;  // cos 45 deg
+    constexpr std::array<double, 8> kCos{1, kH, 0, -kH, -1, -kH, 0, kH};
+    constexpr std::array<double, 8> kSin{0, kH, 1, kH, 0, -kH, -1, -kH};
+    Mat3<Scalar> r;
+    r.col(2) = t.col(2);
+    for (std::size_t k = 0; k < kCos.size(); ++k) {
+      const auto c = static_cast<Scalar>(kCos[k]);
+      const auto s = static_cast<Scalar>(kSin[k]);
+      r.col(0) = c * t.col(0) + s * t.col(1);
+      r.col(1) = c * t.col(1) - s * t.col(0);
+      f(static_cast<const Mat3<Scalar>&>(r));
     }
   }
   return true;

@@ -52,7 +52,7 @@
 // scale through a near-constant vertical field): a 90-s survey manoeuvre stayed at 1.6x its limit
 // while the output error on the survey lines was at the floor. parameter_ratio() reports it.
 // progress() is the fulfilment of the readiness and noise ratios (and the start-up collection
-// before). The envelope costs ~20 000 instructions on the M4F: it is refreshed every refresh_every
+// before). The envelope costs ~46 000 instructions on the M4F: it is refreshed every refresh_every
 // samples.
 //
 // Noise refinement (E-VF-10): once the filter runs, its live innovations estimate both noise
@@ -185,6 +185,7 @@ class VectorCalibrator {
     hold_n_ = 0;
     hold_done_ = 0;
     att_.reset(hold_buffer_config(cfg_.max_rate_span_s));
+    half_span_us_ = static_cast<std::int64_t>(std::lround(cfg_.rate_half_span_s * Scalar(1e6)));
     n_kept_ = 0;
     noise_batch_.reset();
     noise_step_deg_ = cfg_.filter.init_min_rotation_deg;
@@ -486,12 +487,13 @@ class VectorCalibrator {
     VfSample<Scalar> v{};
     std::uint64_t t_us{0};
   };
-  // Logical index 0 is the oldest entry.
+  // Logical index 0 is the oldest entry (0 <= i < HoldCapacity: an unsigned remainder, which is
+  // a mask for a power of two).
   Held& held(int i) noexcept {
-    return hold_[static_cast<std::size_t>((hold_head_ + i) % HoldCapacity)];
+    return hold_[static_cast<std::size_t>(hold_head_ + i) % static_cast<std::size_t>(HoldCapacity)];
   }
   const Held& held(int i) const noexcept {
-    return hold_[static_cast<std::size_t>((hold_head_ + i) % HoldCapacity)];
+    return hold_[static_cast<std::size_t>(hold_head_ + i) % static_cast<std::size_t>(HoldCapacity)];
   }
   // The offset the next sample is aligned to: the filter's, within what the ring can reach.
   Scalar offset_now() const noexcept {
@@ -530,8 +532,9 @@ class VectorCalibrator {
   CalibratorAdd flush_held() noexcept;
   std::array<Held, static_cast<std::size_t>(HoldCapacity)> hold_{};
   int hold_head_{0};
-  int hold_n_{0};     // entries in the ring
-  int hold_done_{0};  // the oldest hold_done_ entries are processed (history)
+  int hold_n_{0};                 // entries in the ring
+  int hold_done_{0};              // the oldest hold_done_ entries are processed (history)
+  std::int64_t half_span_us_{0};  // rate_half_span_s in microseconds
   AttitudeBuffer<Scalar, static_cast<std::size_t>(HoldCapacity)> att_{
       hold_buffer_config(Scalar(0.5))};
 };
@@ -542,7 +545,7 @@ CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacit
   ++counts_.seen;
   const bool bad_f = std::isinf(s.f_ref_nT);
   const bool bad_t = std::isinf(s.temperature_degC);
-  if (!s.m_nT.allFinite() || bad_f || bad_t || (r_bn != nullptr && !r_bn->allFinite())) {
+  if (!all_finite(s.m_nT) || bad_f || bad_t || (r_bn != nullptr && !all_finite(*r_bn))) {
     ++counts_.nonfinite;
     return CalibratorAdd::kRejected;
   }
@@ -576,15 +579,19 @@ CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacit
     --hold_n_;
     --hold_done_;
   }
-  Held h;
+  // Written in place, every field (the ring's slot holds an old entry).
+  Held& h = held(hold_n_);
+  h.v.interval_s = hold_n_ > 0 ? static_cast<Scalar>(s.t_us - held(hold_n_ - 1).t_us) * Scalar(1e-6)
+                               : std::numeric_limits<Scalar>::quiet_NaN();
   h.t_us = s.t_us;
   h.v.m_nT = s.m_nT;
   h.v.r_bn = *r_bn;
+  h.v.omega_n_rad_s.setZero();
+  h.v.attitude_offset_s = Scalar(0);
   h.v.f_nT = s.f_ref_nT;
   h.v.temperature_degC = s.temperature_degC;
-  if (hold_n_ > 0)
-    h.v.interval_s = static_cast<Scalar>(s.t_us - held(hold_n_ - 1).t_us) * Scalar(1e-6);
-  held(hold_n_) = h;
+  static_assert(sizeof(VfSample<Scalar>) == (3 + 9 + 3 + 4) * sizeof(Scalar),
+                "every field of VfSample is written above");
   ++hold_n_;
   (void)att_.insert(s.t_us, quat_from_r_bn(*r_bn));
   if (hold_done_ < hold_n_ && ready_to_process(hold_done_)) out = process_held(hold_done_);
@@ -607,14 +614,16 @@ CalibratorAdd VectorCalibrator<Scalar, InitCapacity, ReplayCapacity, HoldCapacit
   const Scalar a = offset_now();
   const Scalar w = cfg_.rate_half_span_s;
   Mat3<Scalar> r_a;
-  if (attitude_at(shifted_us(t_us, a), &r_a)) {
+  const std::int64_t t_a_us = shifted_us(t_us, a);
+  std::int64_t t_q_us = static_cast<std::int64_t>(t_us);  // the time of v.r_bn
+  if (attitude_at(t_a_us, &r_a)) {
     v.r_bn = r_a;
     v.attitude_offset_s = a;
+    t_q_us = t_a_us;
   }
-  const Scalar tq = v.attitude_offset_s;
   Quat<Scalar> q_lo, q_hi;
-  if (w > Scalar(0) && quat_at(shifted_us(t_us, tq + w), &q_lo) &&
-      quat_at(shifted_us(t_us, tq - w), &q_hi)) {
+  if (w > Scalar(0) && quat_at(t_q_us - half_span_us_, &q_lo) &&
+      quat_at(t_q_us + half_span_us_, &q_hi)) {
     v.omega_n_rad_s = rate_n_from_quats(q_lo, q_hi, Scalar(2) * w);
   } else {
     // The neighbours' rate (independent of the sample's own attitude noise).

@@ -482,19 +482,41 @@ SimOptions noisy_manoeuvre(double duration_s) {
   return o;
 }
 
-void temperature_ramp_recovers_the_coefficients(int fold) {
+// A 20 degC temperature ramp over the run, with 0.3 nT/degC offset coefficients.
+Truth ramp_truth() {
   Truth tr;
   tr.tc = {0.3, -0.3, 0.3};
-  SimOptions o = noisy_manoeuvre(60);
+  return tr;
+}
+SimOptions ramp_manoeuvre(double duration_s) {
+  SimOptions o = noisy_manoeuvre(duration_s);
   o.with_temperature = true;
   o.temp_start_degC = 15;
   o.temp_end_degC = 35;
+  return o;
+}
+
+// One ramp run from a seed: its data and the filter (temperatures referred to the truth's T0).
+struct RampRun {
+  std::vector<SimSample> data;
+  std::unique_ptr<Filter<double>> f;
+};
+RampRun run_ramp(const Truth& tr, const SimOptions& o, unsigned seed, int fold) {
+  std::mt19937_64 rng(seed);
+  RampRun r;
+  r.data = simulate_manoeuvre(tr, o, rng);
+  VfConfig<double> cfg = fold_cfg<double>(fold);
+  cfg.temperature_ref_degC = tr.t0_degC;
+  r.f = run<double>(r.data, cfg);
+  return r;
+}
+
+void temperature_ramp_recovers_the_coefficients(int fold) {
+  const Truth tr = ramp_truth();
+  const SimOptions o = ramp_manoeuvre(60);
   for (unsigned seed : {11U, 12U, 13U}) {
-    std::mt19937_64 rng(seed);
-    const auto data = simulate_manoeuvre(tr, o, rng);
-    VfConfig<double> cfg = fold_cfg<double>(fold);
-    cfg.temperature_ref_degC = tr.t0_degC;
-    auto f = run<double>(data, cfg);
+    const RampRun rr = run_ramp(tr, o, seed, fold);
+    const Filter<double>* f = rr.f.get();
     ASSERT_TRUE(f->initialised());
     EXPECT_EQ(f->counters().resets, 0U);
     const VfSigmas<double> sg = f->sigmas();
@@ -518,17 +540,9 @@ void temperature_ramp_recovers_the_coefficients(int fold) {
 // as Rm (I - [phi x]) per E-VF-3, c_T), with the filter's covariance: (1/n) sum J P J^T. A run with
 // a temperature ramp, so that the c_T columns (dT times o's) count.
 void output_uncertainty_is_the_envelopes_linearised_error(int fold) {
-  Truth tr;
-  tr.tc = {0.3, -0.3, 0.3};
-  SimOptions o = noisy_manoeuvre(20);
-  o.with_temperature = true;
-  o.temp_start_degC = 15;
-  o.temp_end_degC = 35;
-  std::mt19937_64 rng(31);
-  const auto data = simulate_manoeuvre(tr, o, rng);
-  VfConfig<double> cfg = fold_cfg<double>(fold);
-  cfg.temperature_ref_degC = tr.t0_degC;
-  auto f = run<double>(data, cfg);
+  const RampRun rr = run_ramp(ramp_truth(), ramp_manoeuvre(20), 31, fold);
+  const std::vector<SimSample>& data = rr.data;
+  const Filter<double>* f = rr.f.get();
   ASSERT_TRUE(f->initialised());
   ASSERT_EQ(f->counters().resets, 0U);
   const VfOutputUncertainty<double> ou = f->output_uncertainty();

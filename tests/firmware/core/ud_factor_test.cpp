@@ -12,14 +12,21 @@ namespace {
 
 constexpr int kN = 7;
 
+// A matrix of standard normal draws, row by row.
+template <int R, int C>
+Mat<double, R, C> gaussian(std::mt19937_64& rng, std::normal_distribution<double>& g) {
+  Mat<double, R, C> a;
+  for (int i = 0; i < R; ++i)
+    for (int j = 0; j < C; ++j)
+      a(i, j) = g(rng);
+  return a;
+}
+
 // A random positive-definite P and its factors.
 void random_factors(std::mt19937_64& rng, Mat<double, kN, kN>* p, Mat<double, kN, kN>* u,
                     Vec<double, kN>* d) {
   std::normal_distribution<double> g(0.0, 1.0);
-  Mat<double, kN, kN> a;
-  for (int i = 0; i < kN; ++i)
-    for (int j = 0; j < kN; ++j)
-      a(i, j) = g(rng);
+  const Mat<double, kN, kN> a = gaussian<kN, kN>(rng, g);
   *p = a * a.transpose() + 0.1 * Mat<double, kN, kN>::Identity();
   ASSERT_TRUE((ud_factorise<double, kN>(*p, u, d)));
 }
@@ -44,10 +51,7 @@ TEST(UdFactor, ThreeRowsAndTheirStatePartMatchTheCovariance) {
     Mat<double, kN, kN> p, u;
     Vec<double, kN> d;
     random_factors(rng, &p, &u, &d);
-    Mat<double, 3, kN> h;
-    for (int i = 0; i < 3; ++i)
-      for (int j = 0; j < kN; ++j)
-        h(i, j) = g(rng);
+    const Mat<double, 3, kN> h = gaussian<3, kN>(rng, g);
     std::array<Vec<double, kN>, 3> f, f2;
     Mat3<double> c;
     ud_ut_times_rows<double, kN>(u, h, &f);
@@ -116,9 +120,7 @@ TEST(UdFactor, PairedBiermanStepsAreTheOneAtATimeUpdate) {
     Mat<double, kN, kN> p, u;
     Vec<double, kN> d;
     random_factors(rng, &p, &u, &d);
-    Vec<double, kN> h;
-    for (int j = 0; j < kN; ++j)
-      h(j) = g(rng);
+    const Vec<double, kN> h = gaussian<kN, 1>(rng, g);
     Vec<double, kN> f = ud_ut_times<double, kN>(u, h);
     if (trial % 3 == 1) f(2) = 0.0;  // a skipped step at an even index, paired with the next
     if (trial % 3 == 2) f(5) = 0.0;  // at an odd index
